@@ -1,0 +1,1 @@
+"""fsjax.data (placeholder for later issues)."""

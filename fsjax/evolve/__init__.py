@@ -1,0 +1,1 @@
+"""fsjax.evolve (placeholder for later issues)."""

@@ -1,0 +1,1 @@
+"""fsjax.fit (placeholder for later issues)."""

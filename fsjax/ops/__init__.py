@@ -1,0 +1,16 @@
+"""All registered ops, one private module per family, re-exported here.
+
+Each family module lists its public ops in ``__all__`` (the one export list);
+importing this package registers every op.
+"""
+
+from ._binary import *  # noqa: F403
+from ._color import *  # noqa: F403
+from ._edges import *  # noqa: F403
+from ._features import *  # noqa: F403
+from ._filters import *  # noqa: F403
+from ._frequency import *  # noqa: F403
+from ._geometry import *  # noqa: F403
+from ._morphology import *  # noqa: F403
+from ._point import *  # noqa: F403
+from ._threshold import *  # noqa: F403

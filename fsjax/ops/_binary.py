@@ -1,0 +1,6 @@
+"""Binary morphology on Region.
+
+(conventions to be stated here)
+"""
+
+__all__: list[str] = []

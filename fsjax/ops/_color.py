@@ -1,0 +1,6 @@
+"""Colour conversions.
+
+(conventions to be stated here)
+"""
+
+__all__: list[str] = []

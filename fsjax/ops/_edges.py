@@ -1,0 +1,6 @@
+"""Derivatives and edge detectors.
+
+(conventions to be stated here)
+"""
+
+__all__: list[str] = []

@@ -1,0 +1,6 @@
+"""Frequency-domain filters.
+
+(conventions to be stated here)
+"""
+
+__all__: list[str] = []

@@ -1,0 +1,6 @@
+"""Geometric transforms.
+
+(conventions to be stated here)
+"""
+
+__all__: list[str] = []

@@ -1,0 +1,6 @@
+"""Point and arithmetic grey-value ops.
+
+(conventions to be stated here)
+"""
+
+__all__: list[str] = []

@@ -1,0 +1,386 @@
+"""Op specs, the ``@register`` decorator, knobs, lookup and search.
+
+One decorator registers an op; the uniform call (:func:`fsjax.apply`), the
+pipelines, the evolutionary search space, the generated docs and the contract
+tests all read the registry and nothing else.
+
+An op is a plain function::
+
+    @register(family="filters", takes=Image, gives=Image,
+              knobs={"sigma": LogKnob(0.3, 8.0)}, differentiable=True,
+              refs=["Lindeberg 1994"])
+    def gaussian(img: Image, /, *, sigma: float = 1.0) -> Image: ...
+
+Rules enforced at registration (so every op is usable by every consumer):
+
+* inputs are positional (one per entry of ``takes``); every other parameter is
+  keyword-only *with a default*;
+* at most two knobs, each naming a keyword parameter; the first is knob ``a``,
+  the second knob ``b``;
+* the docstring has a one-line summary (it becomes the op's ``summary``).
+
+Knobs map a unit value ``u`` in ``[0, 1]`` onto the parameter's physical range.
+The mapping is traced arithmetic, so a knob stays a traced scalar under
+``jit``/``vmap``/``grad``; an op whose knob fixes an array size uses a static
+maximum support and masks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import inspect
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax.numpy as jnp
+
+from .types import Sort, is_concrete
+
+__all__ = [
+    "Knob",
+    "LinKnob",
+    "LogKnob",
+    "IntKnob",
+    "OpSpec",
+    "register",
+    "get_op",
+    "list_ops",
+    "families",
+    "UnknownOpError",
+]
+
+
+# ---------------------------------------------------------------------------
+# Knobs
+# ---------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Knob:
+    """Maps a unit value in ``[0, 1]`` onto a parameter range ``[lo, hi]``."""
+
+    lo: float
+    hi: float
+    unit: str = ""
+
+    def __post_init__(self):
+        if not (math.isfinite(self.lo) and math.isfinite(self.hi)) or not self.lo < self.hi:
+            raise ValueError(f"{type(self).__name__}: need finite lo < hi, got lo={self.lo}, hi={self.hi}")
+
+    def to_param(self, u):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def to_unit(self, v: float) -> float:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def describe(self) -> str:
+        unit = f" {self.unit}" if self.unit else ""
+        return f"{type(self).__name__}: [{self.lo:g}, {self.hi:g}]{unit}"
+
+
+@dataclasses.dataclass(frozen=True)
+class LinKnob(Knob):
+    """Linear map: ``p = lo + u (hi - lo)``."""
+
+    def to_param(self, u):
+        return self.lo + u * (self.hi - self.lo)
+
+    def to_unit(self, v: float) -> float:
+        return (v - self.lo) / (self.hi - self.lo)
+
+
+@dataclasses.dataclass(frozen=True)
+class LogKnob(Knob):
+    """Geometric map: ``p = lo (hi / lo) ** u`` (``lo > 0``); for scales such as sigma."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not self.lo > 0:
+            raise ValueError(f"LogKnob: lo must be > 0, got {self.lo}")
+
+    def to_param(self, u):
+        return self.lo * jnp.exp(u * math.log(self.hi / self.lo))
+
+    def to_unit(self, v: float) -> float:
+        return math.log(v / self.lo) / math.log(self.hi / self.lo)
+
+
+@dataclasses.dataclass(frozen=True)
+class IntKnob(Knob):
+    """Integer-valued parameter: ``p = round(lo + u (hi - lo))``, returned as a traced float.
+
+    The op must accept a traced value (static maximum ``hi`` and masks), and is
+    piecewise constant in ``u`` (not differentiable through this knob).
+    """
+
+    def to_param(self, u):
+        return jnp.round(self.lo + u * (self.hi - self.lo))
+
+    def to_unit(self, v: float) -> float:
+        return (v - self.lo) / (self.hi - self.lo)
+
+
+# ---------------------------------------------------------------------------
+# Specs and the registry
+# ---------------------------------------------------------------------------
+
+
+class UnknownOpError(KeyError, ValueError):
+    """Raised for an op name that is not registered."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; keep it readable
+        return str(self.args[0]) if self.args else ""
+
+
+@dataclasses.dataclass(frozen=True)
+class OpSpec:
+    """Everything the library knows about one op."""
+
+    name: str
+    family: str
+    takes: tuple[type, ...]
+    gives: type
+    knobs: dict[str, Knob]
+    differentiable: bool
+    refs: tuple[str, ...]
+    summary: str
+    fn: Callable[..., Any]
+    raw: Callable[..., Any]
+    input_names: tuple[str, ...]
+    params: dict[str, Any]  # keyword parameter -> default
+    module: str
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.takes)
+
+    @property
+    def linear(self) -> bool:
+        """True when the op takes one input and can be a stage of a linear pipeline."""
+        return len(self.takes) == 1
+
+    @property
+    def knob_names(self) -> tuple[str, ...]:
+        return tuple(self.knobs)
+
+    @property
+    def doc(self) -> str:
+        return inspect.getdoc(self.raw) or ""
+
+    def signature_str(self) -> str:
+        ins = ", ".join(t.__name__ for t in self.takes)
+        return f"({ins}) -> {self.gives.__name__}"
+
+    def knob_params(self, a=None, b=None, *, strict: bool = True, caller: str | None = None) -> dict[str, Any]:
+        """Map knob values ``a``, ``b`` in ``[0, 1]`` to keyword parameters.
+
+        ``None`` leaves a parameter at its default. With ``strict``, a knob given
+        to an op that has no such knob is an error; otherwise it is ignored.
+        Concrete knob values outside ``[0, 1]`` raise ``ValueError``.
+        """
+        who = caller or f"apply({self.name!r})"
+        out: dict[str, Any] = {}
+        names = list(self.knobs)
+        for i, (label, u) in enumerate((("a", a), ("b", b))):
+            if u is None:
+                continue
+            if i >= len(names):
+                if strict:
+                    raise ValueError(
+                        f"{who}: op {self.name!r} has {len(names)} knob(s) "
+                        f"({', '.join(names) or 'none'}); knob {label!r} is not defined"
+                    )
+                continue
+            pname = names[i]
+            if is_concrete(u):
+                uval = jnp.asarray(u)
+                if uval.size and (bool(jnp.any(~jnp.isfinite(uval))) or bool(jnp.any((uval < 0) | (uval > 1)))):
+                    raise ValueError(
+                        f"{who}: knob {label!r} ({pname}) must be in [0, 1], got {_fmt(u)}"
+                    )
+            out[pname] = self.knobs[pname].to_param(u)
+        return out
+
+
+def _fmt(u) -> str:
+    try:
+        return f"{float(u):g}"
+    except (TypeError, ValueError):
+        return repr(u)
+
+
+_REGISTRY: dict[str, OpSpec] = {}
+
+
+def _summary_of(fn: Callable) -> str:
+    doc = inspect.getdoc(fn) or ""
+    first = doc.strip().split("\n\n")[0].replace("\n", " ").strip()
+    return first
+
+
+def register(
+    *,
+    family: str,
+    takes: type | tuple[type, ...],
+    gives: type,
+    knobs: dict[str, Knob] | None = None,
+    differentiable: bool = False,
+    refs: Sequence[str] = (),
+    name: str | None = None,
+) -> Callable[[Callable], Callable]:
+    """Register a function as an fsjax op.
+
+    Args:
+      family: op family (e.g. ``"filters"``); one module per family.
+      takes: input sort, or a tuple of sorts for multi-input ops (those are
+        callable and documented, but linear pipelines do not offer them).
+      gives: output sort.
+      knobs: up to two ``{param: Knob}`` entries; order defines knobs ``a``, ``b``.
+      differentiable: the op is smooth in its knob-mapped parameters and inputs;
+        the contract suite checks ``jax.grad`` against finite differences.
+      refs: references (papers, textbooks) the implementation follows.
+      name: registry name; defaults to the function name.
+
+    Returns the op wrapped with eager input validation (sort, NaN), otherwise
+    identical to the function.
+    """
+    takes_t = takes if isinstance(takes, tuple) else (takes,)
+    knobs = dict(knobs or {})
+
+    def deco(fn: Callable) -> Callable:
+        opname = name or fn.__name__
+        where = f"register({opname!r})"
+        if opname in _REGISTRY:
+            raise ValueError(f"{where}: an op named {opname!r} is already registered "
+                             f"(in {_REGISTRY[opname].module})")
+        for t in (*takes_t, gives):
+            if not (isinstance(t, type) and issubclass(t, Sort)):
+                raise TypeError(f"{where}: takes/gives must be sort classes, got {t!r}")
+        if len(knobs) > 2:
+            raise ValueError(f"{where}: at most two knobs, got {list(knobs)}")
+        for k in knobs.values():
+            if not isinstance(k, Knob):
+                raise TypeError(f"{where}: knob specs must be Knob instances, got {k!r}")
+        summary = _summary_of(fn)
+        if not summary:
+            raise ValueError(f"{where}: the op needs a docstring with a one-line summary")
+        sig = inspect.signature(fn)
+        ps = list(sig.parameters.values())
+        if len(ps) < len(takes_t):
+            raise TypeError(f"{where}: takes {len(takes_t)} input(s) but the function has {len(ps)} parameters")
+        inputs, rest = ps[: len(takes_t)], ps[len(takes_t):]
+        for p in inputs:
+            if p.kind not in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD):
+                raise TypeError(f"{where}: input parameter {p.name!r} must be positional")
+        params: dict[str, Any] = {}
+        for p in rest:
+            if p.kind != p.KEYWORD_ONLY:
+                raise TypeError(f"{where}: parameter {p.name!r} must be keyword-only (put it after `*`)")
+            if p.default is p.empty:
+                raise TypeError(f"{where}: parameter {p.name!r} needs a default")
+            params[p.name] = p.default
+        for k in knobs:
+            if k not in params:
+                raise ValueError(f"{where}: knob {k!r} is not a keyword parameter of {fn.__name__}")
+        input_names = tuple(p.name for p in inputs)
+
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            if len(args) != len(takes_t):
+                raise TypeError(
+                    f"{opname}: takes {len(takes_t)} positional input(s) "
+                    f"({', '.join(t.__name__ for t in takes_t)}), got {len(args)}; "
+                    f"parameters are keyword-only"
+                )
+            for arg, sort, pname in zip(args, takes_t, input_names):
+                if not isinstance(arg, sort):
+                    hint = ""
+                    if not isinstance(arg, Sort):
+                        hint = f"; wrap an array with fsjax.{sort.__name__}(x)"
+                    raise TypeError(
+                        f"{opname}: argument {pname!r} must be {sort.__name__}, "
+                        f"got {type(arg).__name__}{hint}"
+                    )
+                arg.check(op=opname, arg=pname)
+            return fn(*args, **kwargs)
+
+        spec = OpSpec(
+            name=opname,
+            family=family,
+            takes=takes_t,
+            gives=gives,
+            knobs=knobs,
+            differentiable=bool(differentiable),
+            refs=tuple(refs),
+            summary=summary,
+            fn=wrapper,
+            raw=fn,
+            input_names=input_names,
+            params=params,
+            module=fn.__module__,
+        )
+        _REGISTRY[opname] = spec
+        wrapper.spec = spec  # type: ignore[attr-defined]
+        return wrapper
+
+    return deco
+
+
+def _ensure_loaded() -> None:
+    # Importing fsjax.ops registers every op family.
+    from . import ops  # noqa: F401
+
+
+def get_op(name: str) -> OpSpec:
+    """The spec of the op called ``name``; raises :class:`UnknownOpError` with suggestions."""
+    _ensure_loaded()
+    if isinstance(name, OpSpec):
+        return name
+    if not isinstance(name, str):
+        raise TypeError(f"get_op: op name must be a str, got {type(name).__name__}")
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        close = difflib.get_close_matches(name, list(_REGISTRY), n=3)
+        hint = f"; did you mean {', '.join(repr(c) for c in close)}?" if close else ""
+        raise UnknownOpError(f"unknown op {name!r}{hint} (see fsjax.list_ops())") from None
+
+
+def list_ops(
+    family: str | None = None,
+    takes: type | tuple[type, ...] | None = None,
+    gives: type | None = None,
+    search: str | None = None,
+) -> list[OpSpec]:
+    """Registered ops, sorted by family then name, optionally filtered.
+
+    Args:
+      family: keep ops of this family.
+      takes: keep ops whose inputs are exactly this sort (or tuple of sorts).
+      gives: keep ops that return this sort.
+      search: case-insensitive substring of the name, family or summary.
+    """
+    _ensure_loaded()
+    out = list(_REGISTRY.values())
+    if family is not None:
+        if family not in families():
+            raise ValueError(f"list_ops: unknown family {family!r}; known: {', '.join(families())}")
+        out = [s for s in out if s.family == family]
+    if takes is not None:
+        tt = takes if isinstance(takes, tuple) else (takes,)
+        out = [s for s in out if s.takes == tt]
+    if gives is not None:
+        out = [s for s in out if s.gives is gives]
+    if search:
+        q = search.lower()
+        out = [s for s in out if q in s.name.lower() or q in s.family.lower() or q in s.summary.lower()]
+    return sorted(out, key=lambda s: (s.family, s.name))
+
+
+def families() -> list[str]:
+    """Names of the registered op families."""
+    _ensure_loaded()
+    return sorted({s.family for s in _REGISTRY.values()})

@@ -1,0 +1,1 @@
+"""fsjax.render (placeholder for later issues)."""

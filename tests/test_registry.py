@@ -1,0 +1,85 @@
+"""The registry, knobs and bad-input errors of the uniform call."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fsjax
+from fsjax.registry import IntKnob, LinKnob, LogKnob, register
+from fsjax.synth import standard_input
+
+
+def test_list_ops_filters():
+    allops = fsjax.list_ops()
+    assert [s.name for s in fsjax.list_ops(family="filters")] == sorted(
+        s.name for s in allops if s.family == "filters")
+    assert all(s.takes == (fsjax.Image,) for s in fsjax.list_ops(takes=fsjax.Image))
+    assert all(s.gives is fsjax.Region for s in fsjax.list_ops(gives=fsjax.Region))
+    assert "gaussian" in [s.name for s in fsjax.list_ops(search="GAUSS")]
+    with pytest.raises(ValueError, match="unknown family"):
+        fsjax.list_ops(family="nope")
+
+
+def test_spec_fields():
+    s = fsjax.get_op("gaussian")
+    assert (s.name, s.family, s.takes, s.gives) == ("gaussian", "filters", (fsjax.Image,), fsjax.Image)
+    assert s.differentiable and s.refs and s.summary.startswith("Gaussian")
+    assert list(s.knobs) == ["sigma"]
+
+
+def test_knob_maps():
+    assert LinKnob(2.0, 4.0).to_param(0.5) == 3.0
+    assert float(LogKnob(1.0, 100.0).to_param(0.5)) == pytest.approx(10.0)
+    assert float(IntKnob(1, 5).to_param(0.6)) == 3.0
+    with pytest.raises(ValueError):
+        LogKnob(0.0, 1.0)
+    with pytest.raises(ValueError):
+        LinKnob(1.0, 1.0)
+
+
+def test_bad_input_errors():
+    img = standard_input(fsjax.Image)
+    with pytest.raises(fsjax.UnknownOpError, match="unknown op 'gausian'; did you mean 'gaussian'"):
+        fsjax.apply(img, "gausian")
+    with pytest.raises(TypeError, match="gaussian: argument 'img' must be Image, got Region"):
+        fsjax.ops.gaussian(fsjax.Region(img.data > 0.5))
+    with pytest.raises(TypeError, match="gaussian: argument 'img' must be Image, got ndarray"):
+        fsjax.ops.gaussian(np.zeros((4, 4)))
+    with pytest.raises(ValueError, match="expected at least 2 dimensions, got shape \\(5,\\)"):
+        fsjax.Image(jnp.zeros(5))
+    nan = fsjax.Image(jnp.zeros((4, 4)).at[1, 1].set(jnp.nan))
+    with pytest.raises(ValueError, match="gaussian: argument 'img' \\(Image.data\\) contains 1 NaN"):
+        fsjax.ops.gaussian(nan)
+    with pytest.raises(ValueError, match="apply\\('gaussian'\\): knob 'a' \\(sigma\\) must be in \\[0, 1\\], got 1.5"):
+        fsjax.apply(img, "gaussian", a=1.5)
+    with pytest.raises(ValueError, match="knob 'b' is not defined"):
+        fsjax.apply(img, "gaussian", a=0.1, b=0.2)
+    with pytest.raises(ValueError, match="set both by knob and by name"):
+        fsjax.apply(img, "gaussian", a=0.1, sigma=2.0)
+    with pytest.raises(TypeError, match="unknown parameter"):
+        fsjax.apply(img, "gaussian", sgma=2.0)
+    with pytest.raises(ValueError, match="gaussian: argument 'sigma' must be > 0, got -1"):
+        fsjax.ops.gaussian(img, sigma=-1.0)
+    with pytest.raises(ValueError, match="argument 'mode' must be one of"):
+        fsjax.ops.gaussian(img, mode="bogus")
+
+
+def test_register_rules():
+    with pytest.raises(TypeError, match="must be keyword-only"):
+        @register(family="t", takes=fsjax.Image, gives=fsjax.Image)
+        def _bad1(img, sigma=1.0):
+            """Doc."""
+    with pytest.raises(ValueError, match="needs a docstring"):
+        @register(family="t", takes=fsjax.Image, gives=fsjax.Image)
+        def _bad2(img):
+            pass
+    with pytest.raises(ValueError, match="knob 'q' is not a keyword parameter"):
+        @register(family="t", takes=fsjax.Image, gives=fsjax.Image, knobs={"q": LinKnob(0, 1)})
+        def _bad3(img, *, s=1.0):
+            """Doc."""
+    with pytest.raises(ValueError, match="already registered"):
+        @register(family="t", takes=fsjax.Image, gives=fsjax.Image)
+        def gaussian(img):
+            """Doc."""
