@@ -29,6 +29,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .registry import OpSpec, get_op
 from .types import Sort, is_concrete
@@ -227,10 +228,10 @@ class Pipeline:
                     f"pipeline knobs: expected shape ({len(self.stages)}, 2) (n_stages, 2), got {shape}"
                 )
             if is_concrete(knobs):
-                k = jnp.asarray(knobs)
-                bad = ~jnp.isfinite(k) | (k < 0) | (k > 1)
-                if bool(jnp.any(bad)):
-                    idx = [int(v) for v in jnp.argwhere(bad)[0]]
+                k = np.asarray(knobs, dtype=float)
+                bad = ~np.isfinite(k) | (k < 0) | (k > 1)
+                if bool(np.any(bad)):
+                    idx = [int(v) for v in np.argwhere(bad)[0]]
                     raise ValueError(
                         f"pipeline knobs: value at stage {idx[-2] + 1} ({self.stages[idx[-2]].name}), "
                         f"knob {'ab'[idx[-1]]!r} must be in [0, 1], got {float(k[tuple(idx)]):g}"

@@ -36,6 +36,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax.numpy as jnp
+import numpy as np
 
 from .types import Sort, is_concrete
 
@@ -196,8 +197,8 @@ class OpSpec:
                 continue
             pname = names[i]
             if is_concrete(u):
-                uval = jnp.asarray(u)
-                if uval.size and (bool(jnp.any(~jnp.isfinite(uval))) or bool(jnp.any((uval < 0) | (uval > 1)))):
+                uval = np.asarray(u, dtype=float)
+                if uval.size and (not np.all(np.isfinite(uval)) or bool(np.any((uval < 0) | (uval > 1)))):
                     raise ValueError(
                         f"{who}: knob {label!r} ({pname}) must be in [0, 1], got {_fmt(u)}"
                     )

@@ -129,7 +129,8 @@ def _as_array(x: Any, *, sort: str, field: str, kind: str, min_ndim: int,
 
 
 def _has_nonfinite(x: Array) -> bool:
-    return bool(jnp.any(~jnp.isfinite(x)))
+    # numpy, not jnp: inside a jit trace, jnp ops on concrete arrays are staged.
+    return not bool(np.all(np.isfinite(np.asarray(x))))
 
 
 class Sort(eqx.Module):
@@ -152,7 +153,7 @@ class Sort(eqx.Module):
             if v is None or not is_concrete(v):
                 continue
             if _has_nonfinite(v):
-                n_bad = int(jnp.sum(~jnp.isfinite(v)))
+                n_bad = int(np.sum(~np.isfinite(np.asarray(v))))
                 raise ValueError(
                     f"{op}: argument '{arg}' ({type(self).__name__}.{name}) contains "
                     f"{n_bad} NaN/inf value(s); fsjax ops need finite input "
@@ -307,7 +308,7 @@ class Labels(Sort):
         if count is None:
             if not is_concrete(self.data):
                 raise ValueError("Labels(count=None) needs a concrete label array; pass count under jit")
-            count = jnp.max(self.data, axis=(-2, -1), initial=0)
+            count = np.max(np.asarray(self.data), axis=(-2, -1), initial=0)
         self.count = jnp.asarray(count, dtype=jnp.int32)
         self.truncated = jnp.asarray(truncated, dtype=bool)
 
@@ -471,10 +472,11 @@ class Mesh(Sort):
         self.face_valid = _as_array(face_valid, sort="Mesh", field="face_valid", kind="bool", min_ndim=1)
         if is_concrete(self.faces) and self.faces.size:
             nv = self.vertices.shape[-2]
-            if int(self.faces.min()) < 0 or int(self.faces.max()) >= nv:
+            f = np.asarray(self.faces)
+            if int(f.min()) < 0 or int(f.max()) >= nv:
                 raise ValueError(
                     f"Mesh(faces=...): indices must be in [0, {nv - 1}], got range "
-                    f"[{int(self.faces.min())}, {int(self.faces.max())}]"
+                    f"[{int(f.min())}, {int(f.max())}]"
                 )
         self.truncated = jnp.asarray(truncated, dtype=bool)
 
@@ -521,9 +523,9 @@ class Gaussians(Sort):
             lead = arr.shape[: arr.ndim - tail]
             if lead != n:
                 raise ValueError(f"Gaussians({name}=...): leading shape {lead} does not match means {n}")
-        if is_concrete(self.quats):
-            norms = jnp.linalg.norm(self.quats, axis=-1)
-            if bool(jnp.any((norms == 0) & self.valid)):
+        if is_concrete(self.quats) and is_concrete(self.valid):
+            norms = np.linalg.norm(np.asarray(self.quats), axis=-1)
+            if bool(np.any((norms == 0) & np.asarray(self.valid))):
                 raise ValueError("Gaussians(quats=...): a zero-length quaternion is not a rotation")
 
     @property
