@@ -1,0 +1,153 @@
+"""The ``fsjax`` command.
+
+``fsjax ops [--family F] [--search TEXT] [--takes SORT] [--gives SORT]``
+    list registered ops.
+``fsjax run IN.png STAGE [STAGE ...] [-o OUT.png] [--color]``
+    run a type-checked pipeline on an image file; prints the sort after each
+    stage and a ``Feature`` result. A stage is ``name``, ``name:param=value,...``
+    (named parameters) or ``name@a[,b]`` (knob values in [0, 1]).
+``fsjax tour --out DIR [--quick]``
+    the library's main job: a scored tour of what fsjax measures; writes
+    ``DIR/report.md`` and figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import sys
+from typing import Any
+
+
+def _value(text: str) -> Any:
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+
+
+def parse_stage(text: str) -> Any:
+    """Parse a command-line stage: ``name``, ``name:k=v,k2=v2`` or ``name@a[,b]``."""
+    if "@" in text:
+        name, knobs = text.split("@", 1)
+        vals = [float(v) for v in knobs.split(",") if v]
+        return (name, *vals)
+    if ":" in text:
+        name, rest = text.split(":", 1)
+        params = {}
+        for item in filter(None, rest.split(",")):
+            if "=" not in item:
+                raise SystemExit(f"fsjax run: stage {text!r}: expected param=value, got {item!r}")
+            k, v = item.split("=", 1)
+            params[k.strip()] = _value(v.strip())
+        return (name, params)
+    return text
+
+
+def _cmd_ops(args: argparse.Namespace) -> int:
+    import fsjax
+
+    def sort(name):
+        if name is None:
+            return None
+        cls = getattr(fsjax, name, None)
+        if not (isinstance(cls, type) and issubclass(cls, fsjax.Sort)):
+            raise SystemExit(f"fsjax ops: unknown sort {name!r}")
+        return cls
+
+    specs = fsjax.list_ops(family=args.family, takes=sort(args.takes), gives=sort(args.gives), search=args.search)
+    width = max((len(s.name) for s in specs), default=4)
+    for s in specs:
+        knobs = ", ".join(f"{k}" for k in s.knobs) or "-"
+        print(f"{s.name:<{width}}  {s.family:<11} {s.signature_str():<28} knobs: {knobs:<22} {s.summary}")
+    fams = sorted({s.family for s in specs})
+    print(f"\n{len(specs)} ops in {len(fams)} families")
+    return 0
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    import fsjax
+    from fsjax import io
+
+    stages = [parse_stage(s) for s in args.stages]
+    pipe = fsjax.pipeline(stages)
+    want_color = args.color or pipe.takes is fsjax.Color
+    x = io.read_image(args.input, as_grey=not want_color)
+    print(f"input: {args.input} -> {type(x).__name__} {tuple(getattr(x, 'data').shape)}"
+          + (f" ({x.conversion})" if getattr(x, "conversion", None) else ""))
+    if not isinstance(x, pipe.takes):
+        raise SystemExit(f"fsjax run: stage 1 takes {pipe.takes.__name__}, the file gives {type(x).__name__}")
+    outs = pipe.trace(x)
+    for i, (st, y) in enumerate(zip(pipe.stages, outs)):
+        print(f"stage {i + 1}: {st} -> {type(y).__name__}{_summary(y)}")
+    y = outs[-1]
+    if isinstance(y, fsjax.Feature):
+        print(f"result: {float(y.value):.10g}{(' ' + y.unit) if y.unit else ''}")
+    if args.output:
+        if isinstance(y, fsjax.Feature):
+            raise SystemExit("fsjax run: the result is a Feature (printed above); -o needs an image result")
+        io.write_image(args.output, y)
+        print(f"wrote {args.output}")
+    return 0
+
+
+def _summary(y: Any) -> str:
+    import numpy as np
+
+    import fsjax
+
+    if isinstance(y, (fsjax.Image, fsjax.Color)):
+        d = np.asarray(y.data)
+        return f" {d.shape} range [{d.min():.4g}, {d.max():.4g}]"
+    if isinstance(y, fsjax.Region):
+        d = np.asarray(y.data)
+        return f" {d.shape} {int(d.sum())} px set"
+    if isinstance(y, fsjax.Labels):
+        return f" {tuple(y.data.shape)} {int(y.count)} labels"
+    if isinstance(y, fsjax.Feature):
+        return f" = {float(y.value):.6g}"
+    return ""
+
+
+def _cmd_tour(args: argparse.Namespace) -> int:
+    from .tour import run_tour
+
+    run_tour(args.out, quick=args.quick)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="fsjax", description="Typed, jit-compiled vision operators in JAX.")
+    sub = parser.add_subparsers(dest="cmd", required=True)
+
+    p = sub.add_parser("ops", help="list registered ops")
+    p.add_argument("--family")
+    p.add_argument("--search")
+    p.add_argument("--takes", help="input sort name, e.g. Image")
+    p.add_argument("--gives", help="output sort name, e.g. Region")
+    p.set_defaults(func=_cmd_ops)
+
+    p = sub.add_parser("run", help="run a pipeline on an image file")
+    p.add_argument("input")
+    p.add_argument("stages", nargs="+", help="name | name:param=value,... | name@a[,b]")
+    p.add_argument("-o", "--output")
+    p.add_argument("--color", action="store_true", help="read the file as Color (default: grey)")
+    p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("tour", help="run the scored tour and write DIR/report.md")
+    p.add_argument("--out", required=True)
+    p.add_argument("--quick", action="store_true", help="smaller inputs (for tests)")
+    p.set_defaults(func=_cmd_tour)
+
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (TypeError, ValueError, KeyError, FileNotFoundError) as e:
+        if isinstance(e, KeyError):
+            e = str(e)
+        print(f"fsjax {args.cmd}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
