@@ -305,6 +305,12 @@ def register(
                         f"{opname}: argument {pname!r} must be {sort.__name__}, "
                         f"got {type(arg).__name__}{hint}"
                     )
+                bshape = arg.batch_shape
+                if bshape:
+                    raise ValueError(
+                        f"{opname}: argument {pname!r} has batch shape {bshape} in front of one "
+                        f"{sort.__name__}; ops take one instance, batch with jax.vmap"
+                    )
                 arg.check(op=opname, arg=pname)
             return fn(*args, **kwargs)
 

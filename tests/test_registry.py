@@ -49,6 +49,8 @@ def test_bad_input_errors():
         fsjax.ops.gaussian(np.zeros((4, 4)))
     with pytest.raises(ValueError, match="expected at least 2 dimensions, got shape \\(5,\\)"):
         fsjax.Image(jnp.zeros(5))
+    with pytest.raises(ValueError, match="gaussian: argument 'img' has batch shape \\(2,\\)"):
+        fsjax.ops.gaussian(fsjax.Image(jnp.zeros((2, 4, 4))))
     nan = fsjax.Image(jnp.zeros((4, 4)).at[1, 1].set(jnp.nan))
     with pytest.raises(ValueError, match="gaussian: argument 'img' \\(Image.data\\) contains 1 NaN"):
         fsjax.ops.gaussian(nan)
