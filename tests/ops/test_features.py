@@ -170,21 +170,33 @@ def test_sharpness_ranks_focus_where_the_mean_cannot():
 # ---------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("sigma", [0.01, 0.02, 0.05])
-def test_noise_sigma_recovers_known_sigma_on_smooth_image(sigma):
+def _skimage_estimate_sigma(x):
+    """scikit-image's wavelet MAD estimate, printed for comparison (it needs PyWavelets,
+    which the test extra does not install; the assertions do not depend on it)."""
+    try:
+        import pywt  # noqa: F401
+    except ImportError:
+        return None
     from skimage.restoration import estimate_sigma
 
+    return float(estimate_sigma(x))
+
+
+@pytest.mark.parametrize("sigma", [0.01, 0.02, 0.05])
+def test_noise_sigma_recovers_known_sigma_on_smooth_image(sigma):
     clean = _smooth()
     rng = np.random.default_rng(7)
     x = clean + sigma * rng.standard_normal(clean.shape)  # unclipped: the noise is exactly Gaussian
     img = Image(jnp.asarray(x))
     est_i = float(noise_sigma(img).value)
     est_m = float(noise_sigma(img, method="mad").value)
-    est_sk = float(estimate_sigma(x))
+    est_sk = _skimage_estimate_sigma(x)
     naive = float(np.std(x))  # null: the image's standard deviation
+    sk = ("n/a (needs PyWavelets)" if est_sk is None
+          else f"{est_sk:.5f} ({est_sk / sigma - 1:+.1%})")
     print(f"noise_sigma true {sigma}: immerkaer {est_i:.5f} ({est_i / sigma - 1:+.1%}), "
-          f"mad {est_m:.5f} ({est_m / sigma - 1:+.1%}), skimage estimate_sigma {est_sk:.5f} "
-          f"({est_sk / sigma - 1:+.1%}), null std(x) {naive:.5f} ({naive / sigma - 1:+.1%})")
+          f"mad {est_m:.5f} ({est_m / sigma - 1:+.1%}), skimage estimate_sigma {sk}, "
+          f"null std(x) {naive:.5f} ({naive / sigma - 1:+.1%})")
     assert abs(est_i / sigma - 1) <= 0.10
     assert abs(est_m / sigma - 1) <= 0.10
     assert abs(est_i - sigma) < abs(naive - sigma) / 10
