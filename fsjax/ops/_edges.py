@@ -1,6 +1,766 @@
-"""Derivatives and edge detectors.
+"""Derivatives, edge detectors and structure-tensor measures.
 
-(conventions to be stated here)
+Conventions (stated once for the whole family):
+
+* Arrays are ``(row, col)``; pixel centres sit on integer indices. Derivatives
+  use image axes: ``x`` is the column index (increasing to the right), ``y`` is
+  the row index (increasing downwards). ``gx = d/dcol``, ``gy = d/drow``; a grey
+  value increasing to the right has ``gx > 0``.
+* Boundary: SciPy mode names, default ``"reflect"`` (half-sample symmetric
+  ``d c b a | a b c d``); ``"constant"`` pads with 0. See
+  :mod:`fsjax.ops._common`.
+* Scaling: every gradient operator is *normalised to physical slope*, so a
+  linear ramp ``f = a * row + b * col`` gives ``gy = a``, ``gx = b`` (grey value
+  per pixel) away from the border. The 3x3 operators are therefore the SciPy /
+  OpenCV kernels divided by their ramp gain: Sobel ``/ 8``, Prewitt ``/ 6``,
+  Scharr ``/ 32``. Second derivatives (Laplacian, LoG) are in grey value per
+  pixel squared, with SciPy's scaling (no division).
+* Gaussian derivative kernels are SciPy's: the sampled Gaussian truncated at
+  ``int(truncate * sigma + 0.5)`` taps and normalised to sum 1, multiplied by
+  the Hermite factor of the derivative order (``-k / s^2`` for order 1,
+  ``(k^2 - s^2) / s^4`` for order 2). A *traced* sigma (knob) uses the static
+  tap count of ``max_sigma`` with zero weight beyond the sigma-dependent
+  radius, so it gives the same numbers as a concrete sigma.
+* Value range: derivative, Laplacian, LoG, DoG, Harris and eigenvalue outputs
+  are SIGNED responses (or magnitudes that may exceed 1) returned as ``Image``;
+  the ``[0, 1]`` convention of ``Image`` does not hold for them and they are
+  never clipped. ``sobel_dir`` is an angle in radians in ``(-pi, pi]`` and NaN
+  where the gradient is exactly zero (direction undefined).
+* Gradient magnitudes are ``sqrt(gx^2 + gy^2)`` with a safe square root: the
+  value is exact and the gradient is 0 (a subgradient) where both are 0.
+* Structure tensor: ``J = G_sigma * [[gy^2, gx gy], [gx gy, gx^2]]`` built from
+  the normalised Sobel derivatives (as scikit-image, up to its ``8^2`` scale).
+* Canny returns a ``Region``; pixels on the one-pixel image frame are never
+  edges (their non-maximum-suppression neighbourhood is incomplete), as in
+  scikit-image.
 """
 
-__all__: list[str] = []
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ..registry import LinKnob, LogKnob, register
+from ..types import Image, Region
+from ._common import check_choice, check_mode, check_positive, check_range, correlate1d
+from ._filters import gaussian_weights
+
+__all__ = [
+    "sobel_amp",
+    "sobel_dir",
+    "prewitt_amp",
+    "scharr_amp",
+    "laplace",
+    "log",
+    "dog",
+    "gauss_deriv",
+    "harris",
+    "shi_tomasi",
+    "structure_coherence",
+    "canny",
+]
+
+_SIGMA_KNOB = LogKnob(0.5, 8.0, unit="px")
+_SMALL_SIGMA_KNOB = LogKnob(0.5, 4.0, unit="px")
+
+# Smoothing taps of the 3x3 gradient operators, each normalised to sum 1; the
+# derivative taps are the central difference [-1, 0, 1] / 2 (slope per pixel).
+_SMOOTH = {
+    "sobel": (0.25, 0.5, 0.25),
+    "prewitt": (1.0 / 3.0, 1.0 / 3.0, 1.0 / 3.0),
+    "scharr": (3.0 / 16.0, 10.0 / 16.0, 3.0 / 16.0),
+}
+_DIFF = (-0.5, 0.0, 0.5)
+
+
+# ---------------------------------------------------------------------------
+# private helpers
+# ---------------------------------------------------------------------------
+
+
+def _taps(values, x):
+    return jnp.asarray(values, dtype=x.dtype)
+
+
+def _grad3(x: Float[Array, "H W"], kind: str, mode: str):
+    """Normalised 3x3 gradient ``(gy, gx)`` of operator ``kind`` (separable)."""
+    s, d = _taps(_SMOOTH[kind], x), _taps(_DIFF, x)
+    gx = correlate1d(correlate1d(x, s, axis=-2, mode=mode), d, axis=-1, mode=mode)
+    gy = correlate1d(correlate1d(x, d, axis=-2, mode=mode), s, axis=-1, mode=mode)
+    return gy, gx
+
+
+def _safe_hypot(a, b):
+    """``sqrt(a^2 + b^2)`` with a finite zero gradient where both are 0 (double where)."""
+    m2 = a * a + b * b
+    pos = m2 > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, m2, 1.0)), 0.0)
+
+
+def _gauss_taps(sigma, order: int, truncate: float, max_sigma: float, dtype):
+    """SciPy's Gaussian (derivative) correlation taps, static length, traced-sigma safe."""
+    phi = gaussian_weights(sigma, truncate, max_sigma)
+    r = phi.shape[0] // 2
+    k = jnp.arange(-r, r + 1, dtype=phi.dtype)
+    s2 = jnp.asarray(sigma, dtype=phi.dtype) ** 2
+    if order == 0:
+        w = phi
+    elif order == 1:
+        # d/dk of the Gaussian is -k/s^2 phi; as *correlation* taps (flipped) it is +k/s^2 phi
+        w = k / s2 * phi
+    else:
+        w = (k * k - s2) / (s2 * s2) * phi
+    return w.astype(dtype)
+
+
+def _gauss_filter(x, sigma, orders, truncate, max_sigma, mode):
+    """Separable Gaussian (derivative) filter; ``orders = (row_order, col_order)``."""
+    wr = _gauss_taps(sigma, orders[0], truncate, max_sigma, x.dtype)
+    wc = _gauss_taps(sigma, orders[1], truncate, max_sigma, x.dtype)
+    return correlate1d(correlate1d(x, wr, axis=-2, mode=mode), wc, axis=-1, mode=mode)
+
+
+def _check_sigma(op, sigma, truncate, mode):
+    check_positive(op, "sigma", sigma)
+    check_positive(op, "truncate", truncate)
+    check_mode(op, mode)
+
+
+def _structure_tensor(x, sigma, truncate, max_sigma, mode):
+    """``(Jrr, Jrc, Jcc)``: Gaussian-weighted products of normalised Sobel derivatives."""
+    gy, gx = _grad3(x, "sobel", mode)
+    w = _gauss_taps(sigma, 0, truncate, max_sigma, x.dtype)
+
+    def smooth(v):
+        return correlate1d(correlate1d(v, w, axis=-2, mode=mode), w, axis=-1, mode=mode)
+
+    return smooth(gy * gy), smooth(gx * gy), smooth(gx * gx)
+
+
+# ---------------------------------------------------------------------------
+# 3x3 gradient operators
+# ---------------------------------------------------------------------------
+
+
+_RAMP_EXAMPLE = """
+      A ramp ``f = 0.03 row + 0.04 col`` has slope ``hypot(0.03, 0.04) = 0.05``
+      grey value per pixel everywhere away from the border:
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> r, c = jnp.mgrid[0:16, 0:16]
+      >>> img = fsjax.Image(0.03 * r + 0.04 * c)
+      >>> out = fsjax.ops.{name}(img)
+      >>> round(float(out.data[8, 8]), 9)
+      0.05
+"""
+
+
+def _amp_doc(fn):
+    fn.__doc__ = fn.__doc__.replace("{EXAMPLE}", _RAMP_EXAMPLE.format(name=fn.__name__).strip("\n"))
+    return fn
+
+
+@register(family="edges", takes=Image, gives=Image, differentiable=True,
+          refs=["I. Sobel and G. Feldman, 'A 3x3 isotropic gradient operator for image processing', "
+                "talk at the Stanford Artificial Intelligence Project, 1968",
+                "R. O. Duda and P. E. Hart, Pattern Classification and Scene Analysis, Wiley, 1973"])
+@_amp_doc
+def sobel_amp(img: Image, /, *, mode: str = "reflect") -> Image:
+    """Gradient magnitude of the 3x3 Sobel operator, in grey value per pixel.
+
+    ``gx = ([1, 2, 1]^T / 4) (x) ([-1, 0, 1] / 2)`` correlated with the image (and
+    its transpose for ``gy``); ``out = sqrt(gx^2 + gy^2)``. The kernel is SciPy's
+    ``ndimage.sobel`` divided by 8, so a unit ramp gives slope 1.
+
+    Args:
+      img: input image ``(H, W)``.
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+
+    Returns:
+      ``Image`` of gradient magnitudes ``>= 0`` (grey value / pixel; may exceed 1,
+      not clipped).
+
+    Matches ``np.hypot(ndi.sobel(x, 0, mode=mode), ndi.sobel(x, 1, mode=mode)) / 8``
+    to 1e-12 in float64. ``skimage.filters.sobel`` (same mode) equals
+    ``sqrt(2) * sobel_amp``: its kernel is ``/ 4`` instead of ``/ 8`` and it
+    divides the magnitude by ``sqrt(ndim)``.
+
+    Example:
+{EXAMPLE}
+    """
+    check_mode("sobel_amp", mode)
+    gy, gx = _grad3(img.data, "sobel", mode)
+    return Image(_safe_hypot(gx, gy))
+
+
+@register(family="edges", takes=Image, gives=Image, differentiable=False,
+          refs=["I. Sobel and G. Feldman, 'A 3x3 isotropic gradient operator for image processing', "
+                "talk at the Stanford Artificial Intelligence Project, 1968"])
+def sobel_dir(img: Image, /, *, mode: str = "reflect") -> Image:
+    """Gradient direction of the 3x3 Sobel operator, radians in ``(-pi, pi]``.
+
+    ``out = atan2(gy, gx)``: the angle from the +col axis towards the +row axis
+    (clockwise on screen, since rows go down) of the direction in which grey
+    values increase. A ramp increasing to the right gives 0, downwards
+    ``pi / 2``, to the left ``pi``. Where ``gx = gy = 0`` exactly (a flat 3x3
+    neighbourhood) the direction is undefined and the output is NaN; mask it
+    with :func:`sobel_amp`.
+
+    Not differentiable: undefined on flat regions and discontinuous across the
+    ``+-pi`` cut (``differentiable=False``; its gradient is nevertheless finite).
+
+    Args:
+      img: input image ``(H, W)``.
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+
+    Returns:
+      ``Image`` of angles in radians (signed; NaN where undefined).
+
+    Matches ``np.arctan2(ndi.sobel(x, 0), ndi.sobel(x, 1))`` to 1e-12 where the
+    gradient is non-zero.
+
+    Example:
+      A ramp rising along the direction 0.5 rad (from +col towards +row):
+
+      >>> import jax.numpy as jnp, numpy as np, fsjax
+      >>> r, c = jnp.mgrid[0:16, 0:16]
+      >>> img = fsjax.Image(0.02 * (np.cos(0.5) * c + np.sin(0.5) * r))
+      >>> round(float(fsjax.ops.sobel_dir(img).data[8, 8]), 9)
+      0.5
+      >>> bool(jnp.isnan(fsjax.ops.sobel_dir(fsjax.Image(jnp.ones((5, 5)))).data[2, 2]))
+      True
+    """
+    check_mode("sobel_dir", mode)
+    gy, gx = _grad3(img.data, "sobel", mode)
+    flat = (gx == 0) & (gy == 0)
+    # + 0.0 turns -0.0 into +0.0 so the range is (-pi, pi], not [-pi, pi]
+    ang = jnp.arctan2(jnp.where(flat, 0.0, gy) + 0.0, jnp.where(flat, 1.0, gx))
+    return Image(jnp.where(flat, jnp.nan, ang))
+
+
+@register(family="edges", takes=Image, gives=Image, differentiable=True,
+          refs=["J. M. S. Prewitt, 'Object enhancement and extraction', in Picture Processing and "
+                "Psychopictorics, B. S. Lipkin and A. Rosenfeld (eds.), Academic Press, 1970"])
+@_amp_doc
+def prewitt_amp(img: Image, /, *, mode: str = "reflect") -> Image:
+    """Gradient magnitude of the 3x3 Prewitt operator, in grey value per pixel.
+
+    Like :func:`sobel_amp` with the box smoothing ``[1, 1, 1] / 3`` across the
+    derivative direction: SciPy's ``ndimage.prewitt`` divided by 6.
+
+    Args:
+      img: input image ``(H, W)``.
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+
+    Returns:
+      ``Image`` of gradient magnitudes ``>= 0`` (grey value / pixel, not clipped).
+
+    Matches ``np.hypot(ndi.prewitt(x, 0), ndi.prewitt(x, 1)) / 6`` to 1e-12;
+    ``skimage.filters.prewitt`` equals ``sqrt(2) * prewitt_amp`` (kernel ``/ 3``,
+    magnitude ``/ sqrt(2)``).
+
+    Example:
+{EXAMPLE}
+    """
+    check_mode("prewitt_amp", mode)
+    gy, gx = _grad3(img.data, "prewitt", mode)
+    return Image(_safe_hypot(gx, gy))
+
+
+@register(family="edges", takes=Image, gives=Image, differentiable=True,
+          refs=["H. Scharr, Optimale Operatoren in der digitalen Bildverarbeitung, PhD thesis, "
+                "Universitaet Heidelberg, 2000",
+                "B. Jaehne, H. Scharr and S. Koerkel, 'Principles of filter design', in Handbook of "
+                "Computer Vision and Applications, vol. 2, Academic Press, 1999"])
+@_amp_doc
+def scharr_amp(img: Image, /, *, mode: str = "reflect") -> Image:
+    """Gradient magnitude of the 3x3 Scharr operator, in grey value per pixel.
+
+    Like :func:`sobel_amp` with the rotation-optimised smoothing ``[3, 10, 3] / 16``:
+    OpenCV's ``cv2.Scharr`` kernel divided by 32. More isotropic than Sobel.
+
+    Args:
+      img: input image ``(H, W)``.
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+
+    Returns:
+      ``Image`` of gradient magnitudes ``>= 0`` (grey value / pixel, not clipped).
+
+    Matches ``np.hypot(cv2.Scharr(x, CV_64F, 0, 1), cv2.Scharr(x, CV_64F, 1, 0)) / 32``
+    with ``borderType=cv2.BORDER_REFLECT`` (= SciPy ``"reflect"``) to 1e-12, and
+    ``skimage.filters.scharr`` equals ``sqrt(2) * scharr_amp`` (kernel ``/ 16``,
+    magnitude ``/ sqrt(2)``).
+
+    Example:
+{EXAMPLE}
+    """
+    check_mode("scharr_amp", mode)
+    gy, gx = _grad3(img.data, "scharr", mode)
+    return Image(_safe_hypot(gx, gy))
+
+
+# ---------------------------------------------------------------------------
+# Second derivatives and scale-space derivatives
+# ---------------------------------------------------------------------------
+
+
+@register(family="edges", takes=Image, gives=Image, differentiable=True,
+          refs=["R. Jain, R. Kasturi and B. G. Schunck, Machine Vision, McGraw-Hill, 1995, ch. 5"])
+def laplace(img: Image, /, *, mode: str = "reflect") -> Image:
+    """Discrete 5-point Laplacian ``d2/drow2 + d2/dcol2`` (grey value / pixel^2).
+
+    ``out[i, j] = x[i-1, j] + x[i+1, j] + x[i, j-1] + x[i, j+1] - 4 x[i, j]``; exact
+    for quadratics. Signed; not clipped.
+
+    Args:
+      img: input image ``(H, W)``.
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+
+    Returns:
+      Signed ``Image`` (zero on linear ramps, ``4 a`` on ``a (row^2 + col^2)``).
+
+    Matches ``scipy.ndimage.laplace(x, mode=mode)`` to 1e-12.
+
+    Example:
+      ``f = 0.01 (row^2 + col^2)`` has Laplacian ``0.04`` everywhere:
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> r, c = jnp.mgrid[0:9, 0:9]
+      >>> out = fsjax.ops.laplace(fsjax.Image(0.01 * (r**2 + c**2)))
+      >>> round(float(out.data[4, 4]), 12)
+      0.04
+    """
+    check_mode("laplace", mode)
+    x = img.data
+    d2 = _taps((1.0, -2.0, 1.0), x)
+    return Image(correlate1d(x, d2, axis=-2, mode=mode) + correlate1d(x, d2, axis=-1, mode=mode))
+
+
+@register(family="edges", takes=Image, gives=Image, knobs={"sigma": _SIGMA_KNOB}, differentiable=True,
+          refs=["D. Marr and E. Hildreth, 'Theory of edge detection', Proc. R. Soc. Lond. B 207, "
+                "187-217, 1980"])
+def log(img: Image, /, *, sigma: float = 2.0, truncate: float = 4.0, mode: str = "reflect",
+        max_sigma: float = 8.0) -> Image:
+    """Laplacian of Gaussian ``(d2/drow2 + d2/dcol2)(G_sigma * img)`` (grey value / pixel^2).
+
+    Sum of two separable second-derivative-of-Gaussian filters (SciPy's sampled
+    kernels, see the module docstring). Negative on the bright side of an edge,
+    zero-crossing at the edge; not scale-normalised (multiply by ``sigma^2`` for
+    that). Signed; not clipped.
+
+    Args:
+      img: input image ``(H, W)``.
+      sigma: Gaussian standard deviation in pixels, > 0 (knob ``a``, log-mapped to
+        [0.5, 8]).
+      truncate: kernel half-width in units of sigma.
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+      max_sigma: static bound on a traced sigma (fixes the tap count).
+
+    Returns:
+      Signed ``Image``.
+
+    Matches ``scipy.ndimage.gaussian_laplace(x, sigma, mode=mode, truncate=truncate)``
+    to 1e-12 in float64.
+
+    Example:
+      On ``f = 0.01 (row^2 + col^2)`` the Laplacian is 0.04. With the kernel
+      truncated at ``6 sigma`` the sampled kernel reproduces it to ~1e-7; SciPy's
+      default ``truncate=4`` loses ~4% of the kernel's fourth moment and reads low:
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> r, c = jnp.mgrid[0:41, 0:41]
+      >>> img = fsjax.Image(0.01 * (r**2 + c**2))
+      >>> abs(float(fsjax.ops.log(img, sigma=2.0, truncate=6.0).data[20, 20]) - 0.04) < 1e-6
+      True
+      >>> round(float(fsjax.ops.log(img, sigma=2.0).data[20, 20]) / 0.04, 2)
+      0.96
+    """
+    _check_sigma("log", sigma, truncate, mode)
+    x = img.data
+    out = (_gauss_filter(x, sigma, (2, 0), truncate, max_sigma, mode)
+           + _gauss_filter(x, sigma, (0, 2), truncate, max_sigma, mode))
+    return Image(out)
+
+
+@register(family="edges", takes=Image, gives=Image,
+          knobs={"sigma": LogKnob(0.5, 4.0, unit="px"), "ratio": LinKnob(1.1, 2.5)}, differentiable=True,
+          refs=["D. Marr and E. Hildreth, 'Theory of edge detection', Proc. R. Soc. Lond. B 207, "
+                "187-217, 1980",
+                "D. G. Lowe, 'Distinctive image features from scale-invariant keypoints', IJCV 60(2), "
+                "91-110, 2004"])
+def dog(img: Image, /, *, sigma: float = 1.0, ratio: float = 1.6, truncate: float = 4.0,
+        mode: str = "reflect", max_sigma: float = 10.0) -> Image:
+    """Difference of Gaussians ``G_sigma * img - G_(ratio sigma) * img`` (band-pass).
+
+    Positive on the bright side of an edge and on small bright blobs. For ``ratio``
+    close to 1 it approximates ``-(ratio - 1) sigma^2`` times the Laplacian of
+    Gaussian; Marr and Hildreth recommend ``ratio = 1.6``. Signed; not clipped.
+
+    Args:
+      img: input image ``(H, W)``.
+      sigma: the smaller standard deviation in pixels, > 0 (knob ``a``, log-mapped
+        to [0.5, 4]).
+      ratio: the larger sigma divided by the smaller one, > 1 (knob ``b``, linear
+        in [1.1, 2.5]).
+      truncate: kernel half-width in units of sigma (SciPy's rule, each kernel).
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+      max_sigma: static bound on a traced ``ratio * sigma`` (fixes the tap count).
+
+    Returns:
+      Signed ``Image`` (grey value); zero on linear ramps.
+
+    Matches ``gaussian_filter(x, s) - gaussian_filter(x, ratio s)`` (SciPy) to 1e-12
+    and ``skimage.filters.difference_of_gaussians(x, s, ratio s, mode=mode)``.
+
+    Example:
+      On ``f = a (row^2 + col^2)`` Gaussian smoothing adds ``2 a sigma^2``, so the
+      DoG is ``2 a sigma^2 (1 - ratio^2)``: ``-0.006`` for ``a = 0.001``, ``sigma = 1``,
+      ``ratio = 2`` (the sampled kernels agree to ~1e-6):
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> r, c = jnp.mgrid[0:41, 0:41]
+      >>> out = fsjax.ops.dog(fsjax.Image(0.001 * (r**2 + c**2)), sigma=1.0, ratio=2.0)
+      >>> abs(float(out.data[20, 20]) - (-0.006)) < 1e-5
+      True
+    """
+    _check_sigma("dog", sigma, truncate, mode)
+    check_range("dog", "ratio", ratio, 1.0, None, lo_open=True)
+    x = img.data
+    s2 = jnp.asarray(sigma) * ratio
+    out = (_gauss_filter(x, sigma, (0, 0), truncate, max_sigma, mode)
+           - _gauss_filter(x, s2, (0, 0), truncate, max_sigma, mode))
+    return Image(out)
+
+
+_COMPONENTS = ("x", "y", "xx", "xy", "yy", "amp")
+_ORDERS = {"x": (0, 1), "y": (1, 0), "xx": (0, 2), "xy": (1, 1), "yy": (2, 0)}
+
+
+@register(family="edges", takes=Image, gives=Image, knobs={"sigma": _SIGMA_KNOB}, differentiable=True,
+          refs=["J. J. Koenderink, 'The structure of images', Biol. Cybern. 50, 363-370, 1984",
+                "T. Lindeberg, Scale-Space Theory in Computer Vision, Kluwer, 1994"])
+def gauss_deriv(img: Image, /, *, sigma: float = 1.0, component: str = "x", truncate: float = 4.0,
+                mode: str = "reflect", max_sigma: float = 8.0) -> Image:
+    """Gaussian derivative of the image: one partial derivative, or the gradient magnitude.
+
+    ``component`` selects ``d/dx`` (``"x"``, along columns), ``d/dy`` (``"y"``,
+    along rows), ``"xx"``, ``"xy"``, ``"yy"``, or ``"amp" = sqrt(gx^2 + gy^2)``, each
+    of ``G_sigma * img`` with SciPy's sampled derivative kernels. Signed (except
+    ``"amp"``); not clipped.
+
+    Args:
+      img: input image ``(H, W)``.
+      sigma: Gaussian standard deviation in pixels, > 0 (knob ``a``, log-mapped to
+        [0.5, 8]).
+      component: static choice, one of ``"x"``, ``"y"``, ``"xx"``, ``"xy"``,
+        ``"yy"``, ``"amp"``; default ``"x"``.
+      truncate: kernel half-width in units of sigma.
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+      max_sigma: static bound on a traced sigma (fixes the tap count).
+
+    Returns:
+      ``Image`` in grey value / pixel (first order, ``"amp"``) or / pixel^2
+      (second order).
+
+    Matches ``scipy.ndimage.gaussian_filter(x, sigma, order=(o_row, o_col))``
+    (``"x"`` is ``order=(0, 1)``) and, for ``"amp"``,
+    ``scipy.ndimage.gaussian_gradient_magnitude`` to 1e-12 in float64.
+
+    Example:
+      ``f = 0.03 row + 0.04 col``: the x-derivative is 0.04 up to the sampled
+      kernel's variance error (~7e-5 relative at ``sigma = 1``):
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> r, c = jnp.mgrid[0:21, 0:21]
+      >>> img = fsjax.Image(0.03 * r + 0.04 * c)
+      >>> round(float(fsjax.ops.gauss_deriv(img, sigma=1.0).data[10, 10]), 5)
+      0.04
+      >>> round(float(fsjax.ops.gauss_deriv(img, sigma=1.0, component="amp").data[10, 10]), 5)
+      0.05
+    """
+    _check_sigma("gauss_deriv", sigma, truncate, mode)
+    check_choice("gauss_deriv", "component", component, _COMPONENTS)
+    x = img.data
+    if component == "amp":
+        gx = _gauss_filter(x, sigma, (0, 1), truncate, max_sigma, mode)
+        gy = _gauss_filter(x, sigma, (1, 0), truncate, max_sigma, mode)
+        return Image(_safe_hypot(gx, gy))
+    return Image(_gauss_filter(x, sigma, _ORDERS[component], truncate, max_sigma, mode))
+
+
+# ---------------------------------------------------------------------------
+# Structure tensor
+# ---------------------------------------------------------------------------
+
+
+@register(family="edges", takes=Image, gives=Image,
+          knobs={"sigma": _SMALL_SIGMA_KNOB, "k": LinKnob(0.02, 0.2)}, differentiable=True,
+          refs=["C. Harris and M. Stephens, 'A combined corner and edge detector', Proc. 4th Alvey "
+                "Vision Conference, 147-151, 1988"])
+def harris(img: Image, /, *, sigma: float = 1.0, k: float = 0.05, truncate: float = 4.0,
+           mode: str = "reflect", max_sigma: float = 4.0) -> Image:
+    """Harris-Stephens corner response ``det(J) - k tr(J)^2`` of the structure tensor.
+
+    ``J = G_sigma * [[gy^2, gx gy], [gx gy, gx^2]]`` with normalised Sobel
+    derivatives (grey value / pixel). Large positive at corners, negative on
+    straight edges, near zero on flat regions. Signed, in (grey value / pixel)^4.
+
+    Args:
+      img: input image ``(H, W)``.
+      sigma: integration (window) scale in pixels, > 0 (knob ``a``, log-mapped to
+        [0.5, 4]).
+      k: sensitivity, >= 0 (knob ``b``, linear in [0.02, 0.2]); 0.04-0.06 is usual.
+      truncate: Gaussian window half-width in units of sigma.
+      mode: boundary mode for both derivative and window (SciPy names).
+      max_sigma: static bound on a traced sigma (fixes the tap count).
+
+    Returns:
+      Signed ``Image`` of corner responses.
+
+    Matches ``skimage.feature.corner_harris(x, method="k", k=k, sigma=sigma)``
+    divided by ``8^4`` (scikit-image uses the unnormalised Sobel kernel) with
+    ``mode="constant"`` (scikit-image's fixed boundary), to 1e-12 relative.
+
+    Example:
+      On the ramp ``f = 0.03 row + 0.04 col``, ``J = [[a^2, ab], [ab, b^2]]`` has
+      ``det = 0`` and ``tr = 0.0025``, so the response is ``-k 0.0025^2``:
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> r, c = jnp.mgrid[0:25, 0:25]
+      >>> out = fsjax.ops.harris(fsjax.Image(0.03 * r + 0.04 * c), sigma=1.0, k=0.05)
+      >>> abs(float(out.data[12, 12]) - (-0.05 * 0.0025**2)) < 1e-15
+      True
+    """
+    _check_sigma("harris", sigma, truncate, mode)
+    check_range("harris", "k", k, 0.0, None)
+    jrr, jrc, jcc = _structure_tensor(img.data, sigma, truncate, max_sigma, mode)
+    tr = jrr + jcc
+    return Image(jrr * jcc - jrc * jrc - k * tr * tr)
+
+
+@register(family="edges", takes=Image, gives=Image, knobs={"sigma": _SMALL_SIGMA_KNOB}, differentiable=True,
+          refs=["J. Shi and C. Tomasi, 'Good features to track', Proc. IEEE CVPR, 593-600, 1994"])
+def shi_tomasi(img: Image, /, *, sigma: float = 1.0, truncate: float = 4.0, mode: str = "reflect",
+               max_sigma: float = 4.0) -> Image:
+    """Smaller eigenvalue of the structure tensor (Shi-Tomasi corner measure).
+
+    ``lambda_min = (tr J - sqrt((Jrr - Jcc)^2 + 4 Jrc^2)) / 2`` with ``J`` as in
+    :func:`harris`. Near zero on flat regions and straight edges, large at
+    corners; in (grey value / pixel)^2. Rounding can make it slightly negative
+    (about ``-1e-16 tr J``) where ``J`` is rank one; it is not clipped.
+
+    Args:
+      img: input image ``(H, W)``.
+      sigma: integration scale in pixels, > 0 (knob ``a``, log-mapped to [0.5, 4]).
+      truncate: Gaussian window half-width in units of sigma.
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+      max_sigma: static bound on a traced sigma (fixes the tap count).
+
+    Returns:
+      ``Image`` of smaller eigenvalues.
+
+    Matches ``skimage.feature.corner_shi_tomasi(x, sigma)`` divided by ``8^2`` with
+    ``mode="constant"``, to 1e-12 relative.
+
+    Example:
+      A linear ramp has a rank-one tensor (no corner); the single-pixel corner of
+      a bright quadrant has a clearly positive response:
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> r, c = jnp.mgrid[0:25, 0:25]
+      >>> ramp = fsjax.ops.shi_tomasi(fsjax.Image(0.03 * r + 0.04 * c)).data[12, 12]
+      >>> abs(float(ramp)) < 1e-15
+      True
+      >>> quad = fsjax.Image(((r >= 12) & (c >= 12)).astype(float))
+      >>> bool(fsjax.ops.shi_tomasi(quad).data[12, 12] > 0.01)
+      True
+    """
+    _check_sigma("shi_tomasi", sigma, truncate, mode)
+    jrr, jrc, jcc = _structure_tensor(img.data, sigma, truncate, max_sigma, mode)
+    d = jrr - jcc
+    return Image(0.5 * (jrr + jcc - _safe_hypot(d, 2.0 * jrc)))
+
+
+@register(family="edges", takes=Image, gives=Image, knobs={"sigma": _SMALL_SIGMA_KNOB}, differentiable=True,
+          refs=["J. Biguen and G. H. Granlund, 'Optimal orientation detection of linear symmetry', "
+                "Proc. 1st ICCV, 433-438, 1987",
+                "B. Jaehne, Digital Image Processing, 6th ed., Springer, 2005, ch. 13"])
+def structure_coherence(img: Image, /, *, sigma: float = 2.0, truncate: float = 4.0,
+                        mode: str = "reflect", max_sigma: float = 4.0) -> Image:
+    """Orientation coherence ``(l1 - l2) / (l1 + l2)`` of the structure tensor, in [0, 1].
+
+    ``l1 >= l2`` are the eigenvalues of ``J`` (see :func:`harris`);
+    ``l1 - l2 = sqrt((Jrr - Jcc)^2 + 4 Jrc^2)``. 1 for a single orientation (a ramp,
+    straight stripes), 0 for isotropic structure. Where ``tr J = 0`` (a flat
+    neighbourhood, no orientation at all) the output is 0 by definition.
+    (Some texts use the square of this ratio.)
+
+    Args:
+      img: input image ``(H, W)``.
+      sigma: integration scale in pixels, > 0 (knob ``a``, log-mapped to [0.5, 4]).
+      truncate: Gaussian window half-width in units of sigma.
+      mode: boundary mode (SciPy names); default ``"reflect"``.
+      max_sigma: static bound on a traced sigma (fixes the tap count).
+
+    Returns:
+      ``Image`` in ``[0, 1]`` (up to rounding).
+
+    Matches the ratio computed from ``skimage.feature.structure_tensor`` /
+    ``structure_tensor_eigenvalues`` (``mode="constant"``) to 1e-9.
+
+    Example:
+      A ramp is perfectly oriented; ``row^2 + col^2`` is isotropic at its centre:
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> r, c = jnp.mgrid[-12:13, -12:13]
+      >>> ramp = fsjax.Image(0.5 + 0.01 * r + 0.02 * c)
+      >>> round(float(fsjax.ops.structure_coherence(ramp).data[12, 12]), 9)
+      1.0
+      >>> bowl = fsjax.Image(0.001 * (r**2 + c**2))
+      >>> abs(float(fsjax.ops.structure_coherence(bowl).data[12, 12])) < 1e-9
+      True
+    """
+    _check_sigma("structure_coherence", sigma, truncate, mode)
+    jrr, jrc, jcc = _structure_tensor(img.data, sigma, truncate, max_sigma, mode)
+    tr = jrr + jcc
+    diff = _safe_hypot(jrr - jcc, 2.0 * jrc)
+    pos = tr > 0
+    return Image(jnp.where(pos, diff / jnp.where(pos, tr, 1.0), 0.0))
+
+
+# ---------------------------------------------------------------------------
+# Canny
+# ---------------------------------------------------------------------------
+
+
+def _shift(m, dr: int, dc: int):
+    """``out[r, c] = m[r + dr, c + dc]`` with zeros outside (static offsets in -1..1)."""
+    h, w = m.shape[-2:]
+    mp = jnp.pad(m, [(0, 0)] * (m.ndim - 2) + [(1, 1), (1, 1)])
+    return mp[..., 1 + dr:1 + dr + h, 1 + dc:1 + dc + w]
+
+
+def _nms_bilinear(m, gy, gx):
+    """Keep pixels whose magnitude is >= both neighbours along the gradient.
+
+    The two neighbours are interpolated linearly between the two pixels of the
+    3x3 ring that bracket the gradient line, one step (in the dominant axis)
+    forwards and backwards.
+    """
+    sh = {(dr, dc): _shift(m, dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1)}
+    sy = jnp.where(gy >= 0, 1, -1)
+    sx = jnp.where(gx >= 0, 1, -1)
+
+    def at(dr, dc):  # m[r + dr, c + dc] with per-pixel offsets in {-1, 0, 1}
+        out = jnp.zeros_like(m)
+        for (a, b), v in sh.items():
+            out = jnp.where((dr == a) & (dc == b), v, out)
+        return out
+
+    ax, ay = jnp.abs(gx), jnp.abs(gy)
+    horiz = ax >= ay
+    big = jnp.maximum(ax, ay)
+    nz = big > 0
+    w = jnp.where(nz, jnp.minimum(ax, ay) / jnp.where(nz, big, 1.0), 0.0)
+    zero = jnp.zeros_like(sy)
+    # first pixel: one step along the dominant axis; second: the diagonal one
+    f1 = jnp.where(horiz, at(zero, sx), at(sy, zero))
+    b1 = jnp.where(horiz, at(zero, -sx), at(-sy, zero))
+    f2, b2 = at(sy, sx), at(-sy, -sx)
+    fwd = (1 - w) * f1 + w * f2
+    bwd = (1 - w) * b1 + w * b2
+    return (m >= fwd) & (m >= bwd)
+
+
+def _dilate8(e):
+    out = e
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                out = out | _shift(e, dr, dc)
+    return out
+
+
+def _hysteresis(strong, weak, steps_per_check: int = 4):
+    """Pixels of ``weak`` 8-connected (through ``weak``) to ``strong``: a fixed point."""
+
+    def body(state):
+        e, _ = state
+        new = e
+        for _ in range(steps_per_check):
+            new = weak & _dilate8(new)
+        return new, jnp.any(new != e)
+
+    e0 = strong & weak
+    e, _ = jax.lax.while_loop(lambda s: s[1], body, (e0, jnp.asarray(True)))
+    return e
+
+
+@register(family="edges", takes=Image, gives=Region,
+          knobs={"sigma": _SMALL_SIGMA_KNOB, "high_threshold": LogKnob(0.005, 0.25, unit="grey/px")},
+          differentiable=False,
+          refs=["J. Canny, 'A computational approach to edge detection', IEEE TPAMI 8(6), 679-698, "
+                "1986, doi:10.1109/TPAMI.1986.4767851"])
+def canny(img: Image, /, *, sigma: float = 1.0, high_threshold: float = 0.025, low_ratio: float = 0.5,
+          truncate: float = 4.0, mode: str = "reflect", max_sigma: float = 4.0) -> Region:
+    """Canny edge detector: smoothing, gradient, non-maximum suppression, hysteresis.
+
+    1. ``G_sigma * img`` (Gaussian, SciPy's kernel); 2. normalised Sobel gradient
+    ``(gy, gx)`` and magnitude ``m`` (grey value / pixel); 3. non-maximum
+    suppression with *linear interpolation* of ``m`` between the two 8-neighbours
+    that bracket the gradient direction (not 4-direction quantisation): a pixel
+    survives if ``m > 0`` and ``m`` is ``>=`` both interpolated neighbours;
+    4. hysteresis: surviving pixels with ``m >= high_threshold`` seed edges that
+    grow through surviving pixels with ``m >= low_ratio * high_threshold``
+    (8-connectivity), computed as a fixed point of masked dilation in a
+    ``lax.while_loop`` (jittable, vmappable). The one-pixel image frame is never
+    an edge.
+
+    Args:
+      img: input image ``(H, W)``.
+      sigma: smoothing scale in pixels, > 0 (knob ``a``, log-mapped to [0.5, 4]).
+      high_threshold: gradient magnitude (grey value / pixel) that starts an
+        edge, >= 0 (knob ``b``, log-mapped to [0.005, 0.25]). The default 0.025
+        is scikit-image's default 0.2 on its unnormalised (x8) Sobel magnitude.
+      low_ratio: low threshold as a fraction of ``high_threshold``, in [0, 1].
+      truncate: Gaussian half-width in units of sigma.
+      mode: boundary mode for smoothing and Sobel (SciPy names).
+      max_sigma: static bound on a traced sigma (fixes the tap count).
+
+    Returns:
+      ``Region`` of edge pixels (one to two pixels wide).
+
+    Compared with ``skimage.feature.canny(x, sigma, 8 * low, 8 * high)``:
+    same NMS rule and hysteresis; scikit-image smooths with zero padding and
+    bleed-over renormalisation at the border, so results differ near the border.
+    On 128x128 crops of ``camera``/``coins`` the F1 score with 1-px tolerance is
+    asserted > 0.95 in the tests (measured values are printed there).
+
+    Example:
+      Edges of a disc of radius 10 lie within one pixel of the true circle:
+
+      >>> import jax.numpy as jnp, numpy as np, fsjax
+      >>> r, c = np.mgrid[0:41, 0:41]
+      >>> dist = np.hypot(r - 20.3, c - 19.6)
+      >>> edges = fsjax.ops.canny(fsjax.Image(jnp.asarray((dist < 10).astype(float))))
+      >>> e = np.asarray(edges.data)
+      >>> bool(e.sum() > 40), float(np.max(np.abs(dist[e] - 10))) <= 1.0
+      (True, True)
+    """
+    _check_sigma("canny", sigma, truncate, mode)
+    check_range("canny", "high_threshold", high_threshold, 0.0, None)
+    check_range("canny", "low_ratio", low_ratio, 0.0, 1.0)
+    x = img.data
+    sm = _gauss_filter(x, sigma, (0, 0), truncate, max_sigma, mode)
+    gy, gx = _grad3(sm, "sobel", mode)
+    m = _safe_hypot(gx, gy)
+    h, w = m.shape[-2:]
+    rr = jnp.arange(h)[:, None]
+    cc = jnp.arange(w)[None, :]
+    interior = (rr > 0) & (rr < h - 1) & (cc > 0) & (cc < w - 1)
+    cand = _nms_bilinear(m, gy, gx) & (m > 0) & interior
+    high = jnp.asarray(high_threshold, dtype=m.dtype)
+    weak = cand & (m >= low_ratio * high)
+    strong = cand & (m >= high)
+    return Region(_hysteresis(strong, weak))
