@@ -123,10 +123,12 @@ def gain_offset(img: Image, /, *, gain: float = 1.0, offset: float = 0.0) -> Ima
 def gamma(img: Image, /, *, gamma: float = 1.0) -> Image:
     """Power-law (gamma) curve ``out = x ** gamma``, odd-extended to negative values.
 
-    ``out = sign(x) |x| ** gamma``; it fixes 0 and 1, darkens mid-tones for
-    ``gamma > 1`` and brightens them for ``gamma < 1``. ``gamma(gamma(x, g), 1/g) = x``.
-    At ``x = 0`` the value is 0 and the gradient w.r.t. ``x`` is reported as 0
-    (the true slope is infinite for ``gamma < 1``); there is no NaN anywhere.
+    ``out = sign(x) |x| ** gamma`` (computed as ``x |x| ** (gamma - 1)``); it fixes
+    0 and 1, darkens mid-tones for ``gamma > 1`` and brightens them for
+    ``gamma < 1``. ``gamma(gamma(x, g), 1/g) = x``. At ``x = 0`` the value is 0 and
+    the gradient w.r.t. ``x`` is the true slope (0 for ``gamma > 1``, 1 for
+    ``gamma = 1``) except for ``gamma < 1``, where the infinite slope is reported
+    as 0; there is no NaN anywhere.
 
     Args:
       img: input image ``(H, W)``.
@@ -146,11 +148,13 @@ def gamma(img: Image, /, *, gamma: float = 1.0) -> Image:
     """
     check_positive("gamma", "gamma", gamma)
     x = img.data
+    # out = x * |x|**(gamma - 1): odd, and the factor's value at 0 is the slope there
     ax = jnp.abs(x)
     pos = ax > 0
     safe = jnp.where(pos, ax, jnp.ones_like(ax))
-    mag = jnp.where(pos, jnp.exp(gamma * jnp.log(safe)), jnp.zeros_like(ax))
-    return Image((jnp.sign(x) * mag).astype(x.dtype))
+    at_zero = jnp.where(gamma == 1, jnp.ones_like(ax), jnp.zeros_like(ax))
+    t = jnp.where(pos, jnp.exp((gamma - 1) * jnp.log(safe)), at_zero)
+    return Image((x * t).astype(x.dtype))
 
 
 @register(family="point", takes=Image, gives=Image,
@@ -257,7 +261,10 @@ def log_transform(img: Image, /, *, c: float = 10.0) -> Image:
     """
     check_positive("log_transform", "c", c)
     x = img.data
-    out = jnp.sign(x) * jnp.log1p(c * jnp.abs(x)) / jnp.log1p(c)
+    pos = x >= 0
+    xp = jnp.where(pos, x, jnp.zeros_like(x))  # split so the slope at 0 is c / log(1 + c)
+    xn = jnp.where(pos, jnp.zeros_like(x), x)
+    out = (jnp.log1p(c * xp) - jnp.log1p(-c * xn)) / jnp.log1p(c)
     return Image(out.astype(x.dtype))
 
 
@@ -290,7 +297,11 @@ def exp_transform(img: Image, /, *, c: float = 10.0) -> Image:
     """
     check_positive("exp_transform", "c", c)
     x = img.data
-    out = jnp.sign(x) * jnp.expm1(jnp.abs(x) * jnp.log1p(c)) / c
+    pos = x >= 0
+    xp = jnp.where(pos, x, jnp.zeros_like(x))  # split so the slope at 0 is log(1 + c) / c
+    xn = jnp.where(pos, jnp.zeros_like(x), x)
+    k = jnp.log1p(c)
+    out = (jnp.expm1(xp * k) - jnp.expm1(-xn * k)) / c
     return Image(out.astype(x.dtype))
 
 
