@@ -429,7 +429,8 @@ def decorrelation_stretch(img: Color, /, *, target_sigma: float | None = None,
     ``max_gain`` times the gain of the strongest axis:
     ``g_i = max(lam_i, lam_max / max_gain^2)^-1/2``. Axes above that floor are
     whitened exactly; a null axis carries nothing and stays (near) zero, with no
-    blow-up under small perturbations. A constant image is returned unchanged.
+    blow-up under small perturbations. A constant image is returned unchanged
+    (up to the rounding of its mean).
     Gradients are finite when the eigenvalues are distinct; where two coincide
     (e.g. a grey image) they are NaN, the usual eigenvector-derivative
     singularity.
