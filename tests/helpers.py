@@ -53,7 +53,9 @@ def float_leaves(tree):
 
 def inputs_for(spec, variant=0, size=None):
     kw = {} if size is None else {"size": size}
-    return tuple(standard_input(t, variant, **kw) for t in spec.takes)
+    # the i-th input of a multi-input op uses the next variant, so a two-input op
+    # (a metric against a reference, a difference) never compares an image with itself
+    return tuple(standard_input(t, (variant + i) % 2, **kw) for i, t in enumerate(spec.takes))
 
 
 def stack_trees(trees):
