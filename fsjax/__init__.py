@@ -30,6 +30,7 @@ from .types import Gaussians as Gaussians
 from .types import Image as Image
 from .types import Lab as Lab
 from .types import Labels as Labels
+from .types import Match as Match
 from .types import Mesh as Mesh
 from .types import Points as Points
 from .types import Region as Region

@@ -52,6 +52,7 @@ __all__ = [
     "Gaussians",
     "Camera",
     "Depth",
+    "Match",
     "is_concrete",
 ]
 
@@ -597,3 +598,51 @@ class Depth(Sort):
     @property
     def batch_shape(self) -> tuple[int, ...]:
         return tuple(self.z.shape[:-2])
+
+
+# ---------------------------------------------------------------------------
+# Matching
+# ---------------------------------------------------------------------------
+
+
+class Match(Sort):
+    """Found instances of a model, fixed capacity ``K``.
+
+    Per instance: sub-pixel ``row``/``col`` of the model's reference point in the
+    image, ``angle_deg`` (counter-clockwise as seen on screen, i.e. rotating the
+    +col axis towards -row), ``scale``, ``score`` (method-specific, higher is
+    better), ``valid``. Valid instances come first, sorted by descending score;
+    ``truncated`` is True when more instances passed the acceptance test than
+    the capacity holds.
+    """
+
+    row: Float[Array, "*batch K"]
+    col: Float[Array, "*batch K"]
+    angle_deg: Float[Array, "*batch K"]
+    scale: Float[Array, "*batch K"]
+    score: Float[Array, "*batch K"]
+    valid: Bool[Array, "*batch K"]
+    truncated: Bool[Array, "*batch"]
+    _float_fields = ()  # invalid slots hold NaN by design
+
+    def __init__(self, row: Any, col: Any, score: Any, valid: Any = None, angle_deg: Any = None,
+                 scale: Any = None, truncated: Any = False):
+        self.row = _as_array(row, sort="Match", field="row", kind="float", min_ndim=1)
+        shape = self.row.shape
+        dt = self.row.dtype
+        self.col = _as_array(col, sort="Match", field="col", kind="float", min_ndim=1)
+        self.score = _as_array(score, sort="Match", field="score", kind="float", min_ndim=1)
+        self.angle_deg = _as_array(jnp.zeros(shape, dt) if angle_deg is None else angle_deg, sort="Match",
+                                   field="angle_deg", kind="float", min_ndim=1)
+        self.scale = _as_array(jnp.ones(shape, dt) if scale is None else scale, sort="Match", field="scale",
+                               kind="float", min_ndim=1)
+        self.valid = _as_array(jnp.ones(shape, bool) if valid is None else valid, sort="Match", field="valid",
+                               kind="bool", min_ndim=1)
+        for name in ("col", "score", "angle_deg", "scale", "valid"):
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"Match({name}=...): shape {getattr(self, name).shape} does not match row {shape}")
+        self.truncated = jnp.asarray(truncated, dtype=bool)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.row.shape[:-1])
