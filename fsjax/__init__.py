@@ -25,7 +25,9 @@ from .types import Camera as Camera
 from .types import Color as Color
 from .types import Contour as Contour
 from .types import Depth as Depth
+from .types import Edges1D as Edges1D
 from .types import Feature as Feature
+from .types import Fit as Fit
 from .types import Gaussians as Gaussians
 from .types import Image as Image
 from .types import Lab as Lab
@@ -34,6 +36,7 @@ from .types import Match as Match
 from .types import Mesh as Mesh
 from .types import Points as Points
 from .types import Region as Region
+from .types import RegionProps as RegionProps
 from .types import Signal as Signal
 from .types import Sort as Sort
 from .types import Volume as Volume
