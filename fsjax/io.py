@@ -28,6 +28,7 @@ Pillow is an optional dependency, imported inside the functions.
 from __future__ import annotations
 
 import os
+
 import numpy as np
 
 from .types import Color, Image, Region, Sort

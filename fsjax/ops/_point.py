@@ -209,7 +209,8 @@ def normalize(img: Image, /) -> Image:
       ``Image`` in ``[0, 1]`` (exactly 0 at the minimum and 1 at the maximum).
 
     Matches ``skimage.exposure.rescale_intensity(x, out_range=(0, 1))`` to 1e-15
-    in float64 (skimage also returns zeros for a constant image).
+    in float64 for non-constant images (for a constant image scikit-image returns
+    the input values unchanged; fsjax returns zeros).
 
     Example:
       >>> import jax.numpy as jnp, fsjax
