@@ -40,7 +40,10 @@ Conventions:
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jax import lax
 
@@ -246,6 +249,16 @@ def reconstruct(seed, free, connectivity: int = 4):
     return out
 
 
+@functools.partial(jax.jit, static_argnames="connectivity")
+def _outside(mask, connectivity: int):
+    """Background pixels connected to the image border (jitted once per shape)."""
+    h, w = mask.shape[-2:]
+    rows = jnp.arange(h)[:, None]
+    cols = jnp.arange(w)[None, :]
+    edge = (rows == 0) | (rows == h - 1) | (cols == 0) | (cols == w - 1)
+    return reconstruct(jnp.broadcast_to(edge, mask.shape), ~mask, connectivity)
+
+
 @register(family="binary", takes=Region, gives=Region, differentiable=False,
           refs=["P. Soille, Morphological Image Analysis, 2nd ed., Springer, 2003, ch. 6 "
                 "(geodesic reconstruction, hole filling)",
@@ -280,14 +293,7 @@ def fill_holes(region: Region, /, *, connectivity: int = 4) -> Region:
       (81, 81)
     """
     check_choice("fill_holes", "connectivity", connectivity, (4, 8))
-    m = region.data
-    free = ~m
-    h, w = m.shape[-2:]
-    rows = jnp.arange(h)[:, None]
-    cols = jnp.arange(w)[None, :]
-    edge = (rows == 0) | (rows == h - 1) | (cols == 0) | (cols == w - 1)
-    outside = reconstruct(jnp.broadcast_to(edge, m.shape), free, connectivity)
-    return Region(~outside)
+    return Region(~_outside(region.data, connectivity=int(connectivity)))
 
 
 @register(family="binary", takes=Region, gives=Region, differentiable=False, refs=_REFS)

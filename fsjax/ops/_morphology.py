@@ -22,13 +22,14 @@ Conventions:
   equals the concrete one bit for bit. A traced radius outside
   ``[0, max_radius + 1)`` gives an all-NaN image (fails closed). A concrete
   radius sets the exact static size and is not bounded by ``max_radius``.
-* Implementation: the element is decomposed into horizontal segments. Running
-  row maxima of half-widths ``0..R`` are built incrementally (``R`` shift-max
-  steps), then the result is the max over the ``2R + 1`` row offsets of the
-  segment of the right half-width. For a square this *is* the separable
-  row-max-then-column-max; for a disk it replaces the ``O(r^2)`` tap loop by
-  ``O(r)`` shifted maxima. ``max``/``min`` are exact, so this equals the tap
-  loop (and SciPy) exactly.
+* Implementation: a square is separable (max along rows over ``2r + 1``
+  shifted copies, then along columns). A disk is decomposed into horizontal
+  segments: running row maxima of half-widths ``0..r`` are built incrementally
+  (``r`` shift-max steps), then the result is the max over the ``2r + 1`` row
+  offsets of the segment of the right half-width (selected by a dynamic slice
+  when the radius is traced). Measured on 512x512 float32 (2-core CPU) this is
+  ~3-5x faster than the plain loop over the disk's taps for ``r >= 3``.
+  ``max``/``min`` are exact, so both equal the tap loop (and SciPy) exactly.
 * Value ranges: outputs of erosion/dilation/opening/closing stay in the input
   range. ``top_hat``, ``bottom_hat`` and ``morph_gradient`` are ``>= 0`` for the
   ``"reflect"``, ``"mirror"`` and ``"nearest"`` modes (opening is then
@@ -46,7 +47,7 @@ from jax import lax
 
 from ..registry import IntKnob, register
 from ..types import Image, is_concrete
-from ._common import check_choice, check_mode, check_range, check_static_int, pad2d
+from ._common import check_choice, check_mode, check_range, check_static_int, pad2d, pad_axis
 
 __all__ = ["erosion", "dilation", "opening", "closing", "top_hat", "bottom_hat", "morph_gradient"]
 
@@ -66,15 +67,62 @@ def _check_common(op: str, radius, shape: str, mode: str, max_radius: int) -> st
     return "square" if shape == "rect" else shape
 
 
-def _static_half_widths(r: float, shape: str) -> tuple[int, list[int]]:
-    """Support radius ``R = floor(r)`` and the segment half-width of each row offset."""
-    R = int(math.floor(r))
-    r2 = r * r
-    if shape == "disk":
-        ws = [sum(1 for k in range(1, R + 1) if k * k + di * di <= r2) for di in range(-R, R + 1)]
+def _reduce_line(xp, taps, axis: int, n: int, R: int, reduce, fill, r2=None):
+    """Reduce ``xp`` shifted by ``d`` along ``axis`` over static taps ``(d, d^2)``.
+
+    ``xp`` is padded by ``R`` on that axis; with a traced ``r2`` a tap with
+    ``d^2 > r2`` contributes ``fill`` (the reduction's identity). The chain fuses
+    into one XLA loop.
+    """
+    out = None
+    for d, d2 in taps:
+        sl = [slice(None)] * xp.ndim
+        sl[axis] = slice(R + d, R + d + n)
+        term = xp[tuple(sl)]
+        if r2 is not None and d2 > 0:
+            term = jnp.where(d2 <= r2, term, fill)
+        out = term if out is None else reduce(out, term)
+    return out
+
+
+def _disk(x, R: int, rr: float, r2, mode: str, pad_val, reduce, fill):
+    """Disk by horizontal segments: ``out = reduce_di lines[w(di)]`` shifted by ``di`` rows.
+
+    ``lines[k]`` is the running reduction over columns ``j-k..j+k`` of the padded
+    input, built incrementally and materialised (``optimization_barrier``: left
+    to itself XLA re-fuses and recomputes the chain per consumer, measured 4x
+    slower than a plain tap loop). The half-width of row ``di`` is
+    ``w(di) = #{k >= 1 : k^2 + di^2 <= r^2}``; static for a concrete radius
+    (``rr = r^2``), else selected from the stacked lines with a dynamic slice and
+    rows with ``di^2 > r2`` contribute ``fill``.
+    """
+    h, w = x.shape[-2:]
+    xp = pad2d(x, R, R, mode, pad_val)  # (..., H + 2R, W + 2R)
+    if r2 is None:
+        ws = [sum(1 for k in range(1, R + 1) if k * k + di * di <= rr) for di in range(-R, R + 1)]
+        kmax = max(ws)
     else:
-        ws = [R] * (2 * R + 1)
-    return R, ws
+        kmax = R
+    lines = [xp[..., :, R:R + w]]
+    for k in range(1, kmax + 1):
+        lines.append(reduce(lines[-1], reduce(xp[..., :, R - k:R - k + w], xp[..., :, R + k:R + k + w])))
+    out = None
+    if r2 is None:
+        lines = lax.optimization_barrier(lines)
+        for di, wk in zip(range(-R, R + 1), ws):
+            term = lines[wk][..., R + di:R + di + h, :]
+            out = term if out is None else reduce(out, term)
+        return out
+    stack = lax.optimization_barrier(jnp.stack(lines, axis=0))  # (R + 1, ..., H + 2R, W)
+    ks = jnp.arange(1, R + 1, dtype=r2.dtype)
+    i32 = jnp.int32
+    zeros = (i32(0),) * (stack.ndim - 3)
+    for di in range(-R, R + 1):
+        wk = jnp.sum(ks * ks + di * di <= r2).astype(jnp.int32)
+        seg = lax.dynamic_slice(stack, (wk, *zeros, i32(R + di), i32(0)), (1, *stack.shape[1:-2], h, w))[0]
+        term = jnp.where(di * di <= r2, seg, fill)
+        out = term if out is None else reduce(out, term)
+    return out
 
 
 def flat_morph(x, radius, *, shape: str = "disk", dilate: bool = True, mode: str = "reflect",
@@ -87,6 +135,10 @@ def flat_morph(x, radius, *, shape: str = "disk", dilate: bool = True, mode: str
     that is true when a traced radius lies outside ``[0, max_radius + 1)``.
     ``border_fill`` overrides ``cval`` as the constant pad value (used by the
     binary family).
+
+    A square is separable (max along rows, then along columns, each a fused
+    loop over ``2R + 1`` shifted copies); a disk is decomposed into horizontal
+    segments (see :func:`_disk`).
     """
     reduce = jnp.maximum if dilate else jnp.minimum
     if x.dtype == jnp.bool_:
@@ -97,37 +149,25 @@ def flat_morph(x, radius, *, shape: str = "disk", dilate: bool = True, mode: str
     h, w = x.shape[-2:]
     concrete = is_concrete(radius)
     if concrete:
-        R, ws = _static_half_widths(float(radius), shape)
+        r2 = None
+        R = int(math.floor(float(radius)))
+        rr = float(radius) ** 2
     else:
         R = int(max_radius)
-    xp = pad2d(x, R, R, mode, pad_val)  # (..., H + 2R, W + 2R)
-    wmax = max(ws) if concrete else R
-    # lines[k][..., i, j] = reduce of xp over columns j-k..j+k (row i of the padded array)
-    lines = [xp[..., :, R:R + w]]
-    for k in range(1, wmax + 1):
-        lines.append(reduce(lines[-1], reduce(xp[..., :, R - k:R - k + w], xp[..., :, R + k:R + k + w])))
-    out = None
+        r = jnp.asarray(radius, dtype=jnp.result_type(float))
+        r2 = r * r
+        rr = math.inf
+    if shape == "square":
+        line = [(d, d * d) for d in range(-R, R + 1)]
+        xp = pad_axis(x, R, R, x.ndim - 1, mode, pad_val)
+        rows = _reduce_line(xp, line, x.ndim - 1, w, R, reduce, fill, r2)
+        rp = pad_axis(rows, R, R, x.ndim - 2, mode, pad_val)
+        out = _reduce_line(rp, line, x.ndim - 2, h, R, reduce, fill, r2)
+    else:
+        out = _disk(x, R, rr, r2, mode, pad_val, reduce, fill)
     if concrete:
-        for di, wk in zip(range(-R, R + 1), ws):
-            term = lines[wk][..., R + di:R + di + h, :]
-            out = term if out is None else reduce(out, term)
         return out, None
-    ftype = jnp.result_type(float)
-    r = jnp.asarray(radius, dtype=ftype)
-    r2 = r * r
-    stack = jnp.stack(lines, axis=0)  # (R + 1, ..., H + 2R, W)
-    ks = jnp.arange(1, R + 1, dtype=ftype)
-    for di in range(-R, R + 1):
-        if shape == "disk":
-            wk = jnp.sum(ks * ks + di * di <= r2)
-        else:
-            wk = jnp.sum(ks * ks <= r2)
-        active = di * di <= r2
-        seg = lax.dynamic_index_in_dim(stack, wk.astype(jnp.int32), axis=0, keepdims=False)
-        term = jnp.where(active, seg[..., R + di:R + di + h, :], fill)
-        out = term if out is None else reduce(out, term)
-    bad = (r < 0) | (r >= R + 1) | ~jnp.isfinite(r)
-    return out, bad
+    return out, (r < 0) | (r >= R + 1) | ~jnp.isfinite(r)
 
 
 def _grey(op: str, img: Image, radius, shape, mode, cval, max_radius, dilate: bool):
