@@ -25,7 +25,7 @@ Conventions (stated once for the whole family):
   are SIGNED responses (or magnitudes that may exceed 1) returned as ``Image``;
   the ``[0, 1]`` convention of ``Image`` does not hold for them and they are
   never clipped. ``sobel_dir`` is an angle in radians in ``(-pi, pi]`` and NaN
-  where the gradient is exactly zero (direction undefined).
+  where the gradient is zero up to rounding (direction undefined).
 * Gradient magnitudes are ``sqrt(gx^2 + gy^2)`` with a safe square root: the
   value is exact and the gradient is 0 (a subgradient) where both are 0.
 * Structure tensor: ``J = G_sigma * [[gy^2, gx gy], [gx gy, gx^2]]`` built from
@@ -203,9 +203,10 @@ def sobel_dir(img: Image, /, *, mode: str = "reflect") -> Image:
     ``out = atan2(gy, gx)``: the angle from the +col axis towards the +row axis
     (clockwise on screen, since rows go down) of the direction in which grey
     values increase. A ramp increasing to the right gives 0, downwards
-    ``pi / 2``, to the left ``pi``. Where ``gx = gy = 0`` exactly (a flat 3x3
-    neighbourhood) the direction is undefined and the output is NaN; mask it
-    with :func:`sobel_amp`.
+    ``pi / 2``, to the left ``pi``. Where the gradient is zero up to rounding
+    (``|gx| + |gy| <= 8 eps sum_i |w_i x_i|`` over the 3x3 taps, e.g. a flat or
+    exactly balanced neighbourhood) the direction is undefined and the output
+    is NaN; mask it with :func:`sobel_amp`.
 
     Not differentiable: undefined on flat regions and discontinuous across the
     ``+-pi`` cut (``differentiable=False``; its gradient is nevertheless finite).
@@ -218,7 +219,7 @@ def sobel_dir(img: Image, /, *, mode: str = "reflect") -> Image:
       ``Image`` of angles in radians (signed; NaN where undefined).
 
     Matches ``np.arctan2(ndi.sobel(x, 0), ndi.sobel(x, 1))`` to 1e-12 where the
-    gradient is non-zero.
+    gradient is above rounding level.
 
     Example:
       A ramp rising along the direction 0.5 rad (from +col towards +row):
@@ -232,8 +233,15 @@ def sobel_dir(img: Image, /, *, mode: str = "reflect") -> Image:
       True
     """
     check_mode("sobel_dir", mode)
-    gy, gx = _grad3(img.data, "sobel", mode)
-    flat = (gx == 0) & (gy == 0)
+    x = img.data
+    gy, gx = _grad3(x, "sobel", mode)
+    # Rounding bound of gx, gy: sum_i |w_i| |x_i| over the 3x3 taps (the same for
+    # both, by symmetry). Below 8 eps times it, the direction is rounding noise.
+    a = jnp.abs(x)
+    s, d = _taps(_SMOOTH["sobel"], x), _taps((0.5, 0.0, 0.5), x)
+    bound = correlate1d(correlate1d(a, s, axis=-2, mode=mode), d, axis=-1, mode=mode)
+    bound = bound + correlate1d(correlate1d(a, d, axis=-2, mode=mode), s, axis=-1, mode=mode)
+    flat = jnp.abs(gx) + jnp.abs(gy) <= 8 * jnp.finfo(x.dtype).eps * bound
     # + 0.0 turns -0.0 into +0.0 so the range is (-pi, pi], not [-pi, pi]
     ang = jnp.arctan2(jnp.where(flat, 0.0, gy) + 0.0, jnp.where(flat, 1.0, gx))
     return Image(jnp.where(flat, jnp.nan, ang))
@@ -337,7 +345,8 @@ def laplace(img: Image, /, *, mode: str = "reflect") -> Image:
     return Image(correlate1d(x, d2, axis=-2, mode=mode) + correlate1d(x, d2, axis=-1, mode=mode))
 
 
-@register(family="edges", takes=Image, gives=Image, knobs={"sigma": _SIGMA_KNOB}, differentiable=True,
+@register(family="edges", takes=Image, gives=Image, knobs={"sigma": LogKnob(1.0, 8.0, unit="px")},
+          differentiable=True,
           refs=["D. Marr and E. Hildreth, 'Theory of edge detection', Proc. R. Soc. Lond. B 207, "
                 "187-217, 1980"])
 def log(img: Image, /, *, sigma: float = 2.0, truncate: float = 4.0, mode: str = "reflect",
@@ -349,10 +358,17 @@ def log(img: Image, /, *, sigma: float = 2.0, truncate: float = 4.0, mode: str =
     zero-crossing at the edge; not scale-normalised (multiply by ``sigma^2`` for
     that). Signed; not clipped.
 
+    The sampled, truncated kernel does not sum to exactly zero, so a constant
+    grey value ``c`` gives ``L c`` instead of 0 (SciPy's behaviour, kept for
+    conformance): ``L = -1.12`` at ``sigma = 0.5`` (sampling error; hence the
+    knob starts at 1), ``-1.4e-4`` at 1, ``-1.7e-4`` at 2, ``-8e-5`` at 4,
+    ``-2.6e-5`` at 8 (``truncate=4``); ``truncate=6`` makes it negligible for
+    ``sigma >= 1``. :func:`dog` has no such leak.
+
     Args:
       img: input image ``(H, W)``.
       sigma: Gaussian standard deviation in pixels, > 0 (knob ``a``, log-mapped to
-        [0.5, 8]).
+        [1, 8]).
       truncate: kernel half-width in units of sigma.
       mode: boundary mode (SciPy names); default ``"reflect"``.
       max_sigma: static bound on a traced sigma (fixes the tap count).
@@ -364,17 +380,20 @@ def log(img: Image, /, *, sigma: float = 2.0, truncate: float = 4.0, mode: str =
     to 1e-12 in float64.
 
     Example:
-      On ``f = 0.01 (row^2 + col^2)`` the Laplacian is 0.04. With the kernel
-      truncated at ``6 sigma`` the sampled kernel reproduces it to ~1e-7; SciPy's
-      default ``truncate=4`` loses ~4% of the kernel's fourth moment and reads low:
+      On ``f = 0.01 (row^2 + col^2)`` the Laplacian is 0.04; with the kernel
+      truncated at ``6 sigma`` the sampled kernel reproduces it to ~1e-7:
 
       >>> import jax.numpy as jnp, fsjax
       >>> r, c = jnp.mgrid[0:41, 0:41]
       >>> img = fsjax.Image(0.01 * (r**2 + c**2))
       >>> abs(float(fsjax.ops.log(img, sigma=2.0, truncate=6.0).data[20, 20]) - 0.04) < 1e-6
       True
-      >>> round(float(fsjax.ops.log(img, sigma=2.0).data[20, 20]) / 0.04, 2)
-      0.96
+
+      With SciPy's default ``truncate=4`` the kernel's sum is not exactly 0, so a
+      constant image of grey value 1 gives a small response (the DC leak):
+
+      >>> round(float(fsjax.ops.log(fsjax.Image(jnp.ones((41, 41))), sigma=2.0).data[20, 20]), 6)
+      -0.000173
     """
     _check_sigma("log", sigma, truncate, mode)
     x = img.data
