@@ -109,7 +109,7 @@ def _disk(x, R: int, rr: float, r2, mode: str, pad_val, reduce, fill):
     out = None
     if r2 is None:
         lines = lax.optimization_barrier(lines)
-        for di, wk in zip(range(-R, R + 1), ws):
+        for di, wk in zip(range(-R, R + 1), ws, strict=True):
             term = lines[wk][..., R + di:R + di + h, :]
             out = term if out is None else reduce(out, term)
         return out

@@ -116,7 +116,7 @@ def test_traced_radius_equals_concrete(op):
     m = jnp.asarray(COINS[:64, :64])
     radii = jnp.array([0.0, 1.0, 1.5, 4.0, 8.0])
     for shape in ("disk", "square"):
-        batch = jax.jit(jax.vmap(lambda r: op(fsjax.Region(m), radius=r, shape=shape).data))(radii)
+        batch = jax.jit(jax.vmap(lambda r, s=shape: op(fsjax.Region(m), radius=r, shape=s).data))(radii)
         for i, r in enumerate(np.asarray(radii)):
             ref = np.asarray(op(fsjax.Region(m), radius=float(r), shape=shape).data)
             assert np.array_equal(np.asarray(batch[i]), ref), (shape, r)

@@ -115,7 +115,7 @@ def test_traced_radius_equals_concrete(shape):
     x = jnp.asarray(COINS[:48, :48])
     radii = jnp.array([0.0, 1.5, 3.0, 8.0])
     for op in (erosion, opening, morph_gradient):
-        batch = jax.jit(jax.vmap(lambda r: op(fsjax.Image(x), radius=r, shape=shape).data))(radii)
+        batch = jax.jit(jax.vmap(lambda r, op=op: op(fsjax.Image(x), radius=r, shape=shape).data))(radii)
         for i, r in enumerate(np.asarray(radii)):
             ref = op(fsjax.Image(x), radius=float(r), shape=shape).data
             assert np.array_equal(np.asarray(batch[i]), np.asarray(ref)), (op.__name__, r)
