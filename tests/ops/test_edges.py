@@ -428,6 +428,44 @@ def test_canny_traced_knobs_and_float32(coins):
 
 
 # ---------------------------------------------------------------------------
+# Zero crossings (Marr-Hildreth)
+# ---------------------------------------------------------------------------
+
+
+def _zero_crossings_loop(x, min_contrast):
+    """The definition, pixel by pixel (independent restatement for the test)."""
+    h, w = x.shape
+    out = np.zeros((h, w), bool)
+    for i in range(h):
+        for j in range(w):
+            p = x[i, j]
+            for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                a, b = i + di, j + dj
+                if 0 <= a < h and 0 <= b < w:
+                    q = x[a, b]
+                    if (p >= 0) != (q >= 0) and abs(p) <= abs(q) and abs(p - q) >= min_contrast:
+                        out[i, j] = True
+    return out
+
+
+def test_zero_crossings_definition_and_marr_hildreth_disc(camera):
+    lap = _np(ops.log(Image(camera[:48, :48]), sigma=1.5))
+    for mc in (0.0, 0.01):
+        got = _np(ops.zero_crossings(Image(lap), min_contrast=mc))
+        assert np.array_equal(got, _zero_crossings_loop(lap, mc)), mc
+    # LoG zero crossings of a disc lie within 1 px of the circle
+    n, cy, cx, rad = 64, 31.4, 32.7, 17.0
+    r, c = np.mgrid[0:n, 0:n].astype(float)
+    dist = np.hypot(r - cy, c - cx)
+    disc = Image(0.2 + 0.6 * (dist < rad))
+    z = _np(ops.zero_crossings(ops.log(disc, sigma=2.0), min_contrast=1e-3))
+    dmax = np.max(np.abs(dist[z] - rad))
+    f1 = _f1_within(z, np.abs(dist - rad) <= 0.5)
+    print(f"Marr-Hildreth on disc: {z.sum()} px, max |dist - R| = {dmax:.2f} px (tol 1.0), F1 within 1 px {f1:.3f}")
+    assert dmax <= 1.0 and f1 > 0.9
+
+
+# ---------------------------------------------------------------------------
 # dtype, bad input
 # ---------------------------------------------------------------------------
 
@@ -467,6 +505,7 @@ def test_float32_preserved(camera):
     (lambda x: ops.structure_coherence(x, mode="edge"), ("structure_coherence", "mode")),
     (lambda x: ops.canny(x, low_ratio=1.5), ("canny", "low_ratio")),
     (lambda x: ops.canny(x, high_threshold=-0.1), ("canny", "high_threshold")),
+    (lambda x: ops.zero_crossings(x, min_contrast=-1.0), ("zero_crossings", "min_contrast")),
 ])
 def test_bad_parameters_raise_naming_op_and_argument(call, words):
     x = Image(jnp.full((8, 8), 0.5))
