@@ -56,8 +56,10 @@ Conventions:
 
 from __future__ import annotations
 
+import functools
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -136,22 +138,29 @@ def _apply_filter(op: str, img: Image, kind: str, profile: str, *, cutoff=None, 
     check_mode(op, mode)
     x = img.data
     dt = float_dtype(x)
-    x = x.astype(dt)
+
+    def as_dt(v):
+        return jnp.zeros((), dt) if v is None else jnp.asarray(v, dtype=dt)
+
+    out = _filter_core(x.astype(dt), as_dt(cutoff), as_dt(order), as_dt(centre), as_dt(octaves),
+                       kind=kind, profile=profile, pad=pad, mode=mode)
+    return Image(out)
+
+
+@functools.partial(jax.jit, static_argnames=("kind", "profile", "pad", "mode"))
+def _filter_core(x, cutoff, order, centre, octaves, *, kind, profile, pad, mode):
+    # compiled once per (shape, dtype, kind, profile, pad, mode); parameters stay traced
+    dt = x.dtype
     h, w = x.shape[-2:]
     if pad:
         x = pad2d(x, pad, pad, mode)
     hp, wp = x.shape[-2:]
     f2 = _radial_f2_half(hp, wp, dt)
-
-    def as_dt(v):
-        return None if v is None else jnp.asarray(v, dtype=dt)
-
-    gain = _transfer(f2, kind, profile, as_dt(cutoff), as_dt(order), as_dt(centre), as_dt(octaves))
-    spec = jnp.fft.rfft2(x)
-    out = jnp.fft.irfft2(spec * gain, s=(hp, wp)).astype(dt)
+    gain = _transfer(f2, kind, profile, cutoff, order, centre, octaves)
+    out = jnp.fft.irfft2(jnp.fft.rfft2(x) * gain, s=(hp, wp)).astype(dt)
     if pad:
         out = out[..., pad:pad + h, pad:pad + w]
-    return Image(out)
+    return out
 
 
 # ---------------------------------------------------------------------------
