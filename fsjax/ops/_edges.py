@@ -75,9 +75,7 @@ _SMOOTH = {
 _DIFF = (-0.5, 0.0, 0.5)
 
 
-# ---------------------------------------------------------------------------
-# private helpers
-# ---------------------------------------------------------------------------
+# --- private helpers -------------------------------------------------------
 
 
 def _taps(values, x):
@@ -139,9 +137,7 @@ def _structure_tensor(x, sigma, truncate, max_sigma, mode):
     return smooth(gy * gy), smooth(gx * gy), smooth(gx * gx)
 
 
-# ---------------------------------------------------------------------------
-# 3x3 gradient operators
-# ---------------------------------------------------------------------------
+# --- 3x3 gradient operators ------------------------------------------------
 
 
 _RAMP_EXAMPLE = """
@@ -309,9 +305,7 @@ def scharr_amp(img: Image, /, *, mode: str = "reflect") -> Image:
     return Image(_safe_hypot(gx, gy))
 
 
-# ---------------------------------------------------------------------------
-# Second derivatives and scale-space derivatives
-# ---------------------------------------------------------------------------
+# --- Second derivatives and scale-space derivatives ------------------------
 
 
 @register(family="edges", takes=Image, gives=Image, differentiable=True,
@@ -509,9 +503,7 @@ def gauss_deriv(img: Image, /, *, sigma: float = 1.0, component: str = "x", trun
     return Image(_gauss_filter(x, sigma, _ORDERS[component], truncate, max_sigma, mode))
 
 
-# ---------------------------------------------------------------------------
-# Structure tensor
-# ---------------------------------------------------------------------------
+# --- Structure tensor ------------------------------------------------------
 
 
 @register(family="edges", takes=Image, gives=Image,
@@ -649,9 +641,7 @@ def structure_coherence(img: Image, /, *, sigma: float = 2.0, truncate: float = 
     return Image(jnp.where(pos, diff / jnp.where(pos, tr, 1.0), 0.0))
 
 
-# ---------------------------------------------------------------------------
-# Canny
-# ---------------------------------------------------------------------------
+# --- Canny -----------------------------------------------------------------
 
 
 def _shift(m, dr: int, dc: int):
