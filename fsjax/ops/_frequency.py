@@ -65,8 +65,16 @@ import numpy as np
 
 from ..registry import LinKnob, LogKnob, register
 from ..types import Image
-from ._common import (check_choice, check_mode, check_positive, check_range, check_static_int, eps, float_dtype,
-                      pad2d)
+from ._common import (
+    check_choice,
+    check_mode,
+    check_positive,
+    check_range,
+    check_static_int,
+    eps,
+    float_dtype,
+    pad2d,
+)
 
 __all__ = [
     "fft_magnitude",
@@ -314,7 +322,7 @@ def ideal_lowpass(img: Image, /, *, cutoff: float = 0.1, pad: int = 0, mode: str
     Returns:
       ``Image`` ``(H, W)``, same dtype; values may leave ``[0, 1]`` slightly (ringing).
 
-    ``ideal_lowpass(x, cutoff=c) + ideal_highpass(x, cutoff=c) == x`` to 1e-15.
+    ``ideal_lowpass(x, cutoff=c) + ideal_highpass(x, cutoff=c) == x`` to 1e-14.
     Not differentiable in ``cutoff`` (piecewise constant).
 
     Example:
@@ -351,7 +359,7 @@ def ideal_highpass(img: Image, /, *, cutoff: float = 0.1, pad: int = 0, mode: st
       **Signed** ``Image`` ``(H, W)`` with zero mean (values around 0, not clipped).
 
     ``ideal_lowpass + ideal_highpass`` with the same cutoff returns the input to
-    1e-15; not differentiable in ``cutoff``.
+    1e-14; not differentiable in ``cutoff``.
 
     Example:
       A constant image has no energy above DC, so its high-pass is 0:
@@ -504,7 +512,7 @@ def butterworth_bandpass(img: Image, /, *, centre: float = 0.1, octaves: float =
     Returns:
       **Signed**, zero-mean ``Image`` ``(H, W)`` (not clipped).
 
-    Equals ``butterworth_highpass(butterworth_lowpass(x, f_hi), f_lo)`` to 1e-15.
+    Equals ``butterworth_highpass(butterworth_lowpass(x, f_hi), f_lo)`` to 1e-14.
     Smooth in ``centre``, ``octaves`` and ``order``.
 
     Example:
@@ -574,7 +582,7 @@ def gaussian_highpass(img: Image, /, *, cutoff: float = 0.1, pad: int = 0, mode:
     Returns:
       **Signed**, zero-mean ``Image`` ``(H, W)`` (not clipped).
 
-    Equals ``x - gaussian_lowpass(x)`` to 1e-15. Smooth in ``cutoff``.
+    Equals ``x - gaussian_lowpass(x)`` to 1e-14. Smooth in ``cutoff``.
 
     Example:
       At ``f = fc`` the gain is ``1 - exp(-1/2)``:
