@@ -6,11 +6,18 @@ importing this package registers every op.
 
 from ._binary import *  # noqa: F403
 from ._color import *  # noqa: F403
+from ._contours import *  # noqa: F403
+from ._distance import *  # noqa: F403
 from ._edges import *  # noqa: F403
+from ._edges_canny import *  # noqa: F403
 from ._features import *  # noqa: F403
 from ._filters import *  # noqa: F403
 from ._frequency import *  # noqa: F403
 from ._geometry import *  # noqa: F403
+from ._matching import *  # noqa: F403
 from ._morphology import *  # noqa: F403
 from ._point import *  # noqa: F403
+from ._segment import *  # noqa: F403
+from ._skeleton import *  # noqa: F403
 from ._threshold import *  # noqa: F403
+from ._threshold_local import *  # noqa: F403
