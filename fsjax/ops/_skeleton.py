@@ -190,9 +190,11 @@ def skeleton_junctions(skel: Region, /) -> Region:
 
     Returns:
       ``Region`` of the junction pixels. Where branches meet through a small
-      cluster instead of a single pixel (possible after thinning), the junction
-      may be marked on more than one pixel of the cluster, or, in a 3-pixel
-      triangle of mutually adjacent pixels, on none.
+      cluster instead of a single pixel, the crossing number of each cluster
+      pixel can be 2: a 3-pixel triangle of mutually adjacent pixels, or the
+      2x2 core that Guo-Hall thinning leaves where four diagonal branches
+      cross, is then not marked (count end points, or label the pixels with
+      three or more neighbours, to catch those).
 
     Example:
       A one-pixel "+" has a single junction, at its centre:
