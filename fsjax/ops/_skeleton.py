@@ -136,8 +136,9 @@ def skeleton(region: Region, /, *, method: str = "guo_hall") -> Region:
     ``method="guo_hall"`` matches ``skimage.morphology.thin`` exactly (the same
     Guo-Hall A1 rules); ``"zhang"`` implements the published Zhang-Suen rules,
     which ``skimage.morphology.skeletonize`` modifies (its look-up table keeps
-    2x2 squares), so the two agree on about 99% of the pixels of thresholded
-    ``coins()``/``horse()``, not exactly (figures in ``tests/ops/test_skeleton.py``).
+    2x2 squares), so the two agree on 98.9-99.8% of the pixels (skeleton IoU
+    0.83-0.90) of thresholded ``coins()``, ``horse()`` and opened noise, not
+    exactly.
 
     Example:
       A 5-px-thick horizontal bar thins to a single row, one pixel wide:
