@@ -158,7 +158,8 @@ def _rec_dilate(marker, mask, connectivity: int = 8):
         r, _ = st
         new = sweep(sweep(r, mask, False), mask, True)
         new = sweep(sweep(new.T, mask_t, False), mask_t, True).T
-        return new, jnp.any(new != r)
+        # NaN-aware change test: NaN (only reachable under jit) spreads and settles
+        return new, jnp.any((new != r) & ~(jnp.isnan(new) & jnp.isnan(r)))
 
     r0 = jnp.minimum(marker.astype(dt), mask)
     out, _ = lax.while_loop(lambda st: st[1], body, (r0, jnp.asarray(True)))

@@ -297,6 +297,18 @@ def test_bad_parameters_raise(coins):
         reconstruct_erosion(Image(np.full((N, N), np.nan)), img)
 
 
+def test_nan_under_jit_terminates_and_propagates(coins):
+    """Eager NaN input raises (registry); under jit the loops still end and NaN shows up."""
+    bad = coins.copy()
+    bad[40, 40] = np.nan
+    f = jax.jit(lambda a, b: reconstruct_dilation(Image(a), Image(b)).data)
+    out = np.asarray(f(np.clip(coins - 0.2, 0, None), bad))
+    assert np.isnan(out[40, 40])
+    g = jax.jit(lambda a, m: watershed(Image(a), Labels(m, count=1)).data)
+    lab = np.asarray(g(bad, np.eye(N, dtype=np.int32)))
+    assert (lab == 1).all()  # a NaN pixel floods last (as +inf), it is still labelled
+
+
 def test_traced_radius_out_of_range_fails_closed(coins):
     f = jax.jit(lambda r: opening_by_reconstruction(Image(coins), radius=r).data)
     assert np.isnan(np.asarray(f(20.0))).all()
