@@ -12,6 +12,7 @@ from ._edges import *  # noqa: F403
 from ._edges_canny import *  # noqa: F403
 from ._features import *  # noqa: F403
 from ._filters import *  # noqa: F403
+from ._fit2d import *  # noqa: F403
 from ._frequency import *  # noqa: F403
 from ._geometry import *  # noqa: F403
 from ._label import *  # noqa: F403
