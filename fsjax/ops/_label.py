@@ -365,8 +365,9 @@ def remove_small(region: Region, /, *, min_area: float = 64.0, connectivity: int
     Returns:
       The filtered ``Region``.
 
-    Matches ``skimage.morphology.remove_small_objects(x, min_size=min_area,
-    connectivity=2 or 1)`` for integer ``min_area`` exactly (coins).
+    Matches ``skimage.morphology.remove_small_objects(x, max_size=min_area - 1,
+    connectivity=2 or 1)`` (scikit-image >= 0.26; ``min_size=min_area`` before)
+    for integer ``min_area`` exactly (noisy thresholded coins).
 
     Example:
       A 4x4 square (16 px) survives ``min_area=10``, a 3x3 one (9 px) does not:
