@@ -51,6 +51,7 @@ from ..registry import IntKnob, LinKnob, register
 from ..types import Image, Labels, Region
 from ._common import check_choice, check_positive, check_range, check_static_int
 from ._distance import edt_squared
+from ._label import label
 from ._morphology import flat_morph
 
 __all__ = [
@@ -92,36 +93,6 @@ def _shift(x, di: int, dj: int, fill):
     pad = [(0, 0)] * (x.ndim - 2) + [(1, 1), (1, 1)]
     xp = jnp.pad(x, pad, constant_values=fill)
     return xp[..., 1 + di:1 + di + h, 1 + dj:1 + dj + w]
-
-
-def _label_mask(mask, connectivity: int = 8):
-    """Connected components of a bool mask, numbered 1..K in raster order of their first
-    pixel (``scipy.ndimage.label``'s numbering). Returns ``(labels int32, K)``.
-
-    Min-index propagation over the neighbourhood plus pointer jumping, to the
-    fixed point (each component ends labelled by its smallest flat index).
-    """
-    h, w = mask.shape
-    n = h * w
-    big = jnp.int32(n)
-    idx = jnp.arange(n, dtype=jnp.int32).reshape(h, w)
-    lab0 = jnp.where(mask, idx, big)
-
-    def body(st):
-        lab, _ = st
-        m = lab
-        for di, dj in _OFFSETS[connectivity]:
-            m = jnp.minimum(m, _shift(lab, di, dj, big))
-        m = jnp.where(mask, m, big)
-        flat = m.reshape(-1)
-        m = jnp.where(mask, flat[jnp.minimum(flat, n - 1)].reshape(h, w), big)
-        return m, jnp.any(m != lab)
-
-    lab, _ = lax.while_loop(lambda st: st[1], body, (lab0, jnp.asarray(True)))
-    roots = mask & (lab == idx)
-    rank = jnp.cumsum(roots.reshape(-1).astype(jnp.int32))
-    out = jnp.where(mask, rank[jnp.minimum(lab, n - 1).reshape(-1)].reshape(h, w), 0)
-    return out.astype(jnp.int32), rank[-1]
 
 
 def _rec_dilate(marker, mask, connectivity: int = 8):
@@ -256,9 +227,10 @@ def _watershed_core(img, markers, mask, *, connectivity: int, levels: int):
 def _split_core(mask, h, *, connectivity: int):
     dist = jnp.sqrt(edt_squared(mask))
     peaks = _h_max(dist, h, valid=mask)
-    markers, count = _label_mask(peaks, 8)
-    lab = _flood(-dist, markers, mask, connectivity)
-    return lab, count
+    h_, w_ = mask.shape
+    markers = label(Region(peaks), connectivity=8, capacity=h_ * w_)  # never truncates
+    lab = _flood(-dist, markers.data, mask, connectivity)
+    return lab, markers.count
 
 
 def _check_pair(op: str, a, b, na: str, nb: str) -> None:
@@ -609,7 +581,7 @@ def watershed_split(region: Region, /, *, h: float = 1.0, connectivity: int = 4)
     ``D`` = exact Euclidean distance map of ``region``; markers = the
     h-maxima of ``D`` (domes at least ``h`` px high, measured within each
     connected component, so every component keeps at least one marker),
-    labelled with 8-connectivity; then the watershed of ``-D`` from those
+    labelled with 8-connectivity by :func:`fsjax.ops.label`; then the watershed of ``-D`` from those
     markers restricted to ``region``. Two discs joined by a neck are cut along
     the neck, where ``D`` has its saddle.
 

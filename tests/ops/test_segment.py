@@ -4,7 +4,6 @@ neck, the 60-particle split beside the plain-labelling null, bad input."""
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.ndimage as ndi
@@ -26,7 +25,6 @@ from fsjax.ops import (
     watershed,
     watershed_split,
 )
-from fsjax.ops._segment import _label_mask
 
 N = 96  # one crop size for most tests (one compilation per op)
 
@@ -256,15 +254,6 @@ def test_watershed_split_counts_60_particles_vs_54_merged():
     assert agree >= 0.999
     # breakdown: a dome threshold above the neck dynamics no longer splits the pairs
     assert int(watershed_split(Region(mask), h=4.0).count) < 60
-
-
-def test_private_labeller_matches_scipy_numbering():
-    rng = np.random.default_rng(2)
-    m = ndi.binary_opening(rng.random((N, N)) > 0.55)
-    for conn, st in ((8, np.ones((3, 3))), (4, None)):
-        lab, k = jax.jit(_label_mask, static_argnums=1)(jnp.asarray(m), conn)
-        ref, kr = ndi.label(m, st)
-        assert int(k) == kr and np.array_equal(np.asarray(lab), ref)
 
 
 # ---------------------------------------------------------------------------
