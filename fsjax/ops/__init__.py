@@ -5,6 +5,7 @@ importing this package registers every op.
 """
 
 from ._binary import *  # noqa: F403
+from ._caliper import *  # noqa: F403
 from ._color import *  # noqa: F403
 from ._contours import *  # noqa: F403
 from ._distance import *  # noqa: F403

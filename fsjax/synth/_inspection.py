@@ -238,7 +238,7 @@ def shaft(diameters: tuple[float, ...] = (18.35, 30.7, 24.15), *, shape: tuple[i
 
 
 def bar_code(n_bars: int = 45, *, seed: int = 7, height: int = 15, first: float = 12.4,
-             bar_range: tuple[float, float] = (1.6, 5.2), gap_range: tuple[float, float] = (1.6, 5.2),
+             bar_range: tuple[float, float] = (2.0, 6.0), gap_range: tuple[float, float] = (2.0, 6.0),
              lo: float = 0.1, hi: float = 0.9, blur: float = 0.5):
     """``n_bars`` dark vertical bars of random sub-pixel widths and gaps on a bright ground.
 
