@@ -234,7 +234,10 @@ def _measure_pairs_core(x, row, col, angle_deg, length, sigma, threshold, *, n, 
     width = jnp.where(pv, p2 - p1, 0.0)
 
     def interleave(u, v):
-        return jnp.stack([u, v], axis=1).reshape(-1)
+        out = jnp.stack([u, v], axis=1).reshape(-1)
+        if capacity % 2:  # an odd capacity keeps its last slot unused
+            out = jnp.concatenate([out, jnp.zeros((1,), out.dtype)])
+        return out
 
     p = interleave(p1, p2)
     valid = interleave(pv, pv)
