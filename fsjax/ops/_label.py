@@ -34,6 +34,7 @@ Conventions:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable
 
 import jax
@@ -265,6 +266,7 @@ def _check_conn(op: str, connectivity) -> int:
     return int(connectivity)
 
 
+@functools.partial(jax.jit, static_argnums=(1, 2))
 def label_array(mask, connectivity: int = 8, capacity: int = 1024):
     """``(labels (H, W) int32, count, truncated, rounds)`` for a bool mask (internal)."""
     cc = components(mask, connectivity)
@@ -344,9 +346,12 @@ def count_obj(region: Region, /, *, connectivity: int = 8) -> Feature:
       12.0
     """
     conn = _check_conn("count_obj", connectivity)
-    cc = components(region.data, conn)
-    dt = jnp.result_type(float)
-    return Feature(jnp.sum(cc.is_root).astype(dt), unit="objects")
+    return Feature(_count_core(region.data, conn), unit="objects")
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _count_core(mask, conn: int):
+    return jnp.sum(components(mask, conn).is_root).astype(jnp.result_type(float))
 
 
 @register(family="label", takes=Region, gives=Region, knobs={"min_area": LogKnob(1.0, 4096.0, unit="px")},
@@ -379,10 +384,14 @@ def remove_small(region: Region, /, *, min_area: float = 64.0, connectivity: int
     """
     check_range("remove_small", "min_area", min_area, 0.0)
     conn = _check_conn("remove_small", connectivity)
-    cc = components(region.data, conn)
+    return Region(_remove_small_core(region.data, min_area, conn))
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _remove_small_core(mask, min_area, conn: int):
+    cc = components(mask, conn)
     area = cc.per_root(cc.npix)
-    keep = _take(area, cc.root).astype(jnp.result_type(float)) >= min_area
-    return Region(cc.to_pixels(keep))
+    return cc.to_pixels(_take(area, cc.root).astype(jnp.result_type(float)) >= min_area)
 
 
 @register(family="label", takes=Region, gives=Region, differentiable=False, refs=_REFS)
@@ -409,9 +418,14 @@ def clear_border(region: Region, /, *, connectivity: int = 8) -> Region:
       (9, True)
     """
     conn = _check_conn("clear_border", connectivity)
-    cc = components(region.data, conn)
+    return Region(_clear_border_core(region.data, conn))
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _clear_border_core(mask, conn: int):
+    cc = components(mask, conn)
     touch = cc.per_root(cc.border.astype(jnp.int32), "max")
-    return Region(cc.to_pixels(_take(touch, cc.root) <= 0))
+    return cc.to_pixels(_take(touch, cc.root) <= 0)
 
 
 @register(family="label", takes=Region, gives=Region, differentiable=False, refs=_REFS)
@@ -441,13 +455,17 @@ def largest_component(region: Region, /, *, connectivity: int = 8) -> Region:
       (9, True)
     """
     conn = _check_conn("largest_component", connectivity)
-    cc = components(region.data, conn)
+    return Region(_largest_core(region.data, conn))
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _largest_core(mask, conn: int):
+    cc = components(mask, conn)
     area = jnp.where(cc.is_root, cc.per_root(cc.npix), -1)
     best_area = jnp.max(area)
     best_key = jnp.min(jnp.where(cc.is_root & (area == best_area), cc.key, _INT_MAX))
     winner = cc.is_root & (cc.key == best_key)
-    keep = _take(winner, cc.root)
-    return Region(cc.to_pixels(keep))
+    return cc.to_pixels(_take(winner, cc.root))
 
 
 @register(family="label", takes=Labels, gives=Region, differentiable=False, refs=_REFS)
