@@ -126,11 +126,19 @@ def _ncc_normalise(num, s1, s2, tn, tflat, n: int):
     return jnp.clip(r, -1.0, 1.0)
 
 
+def _centre(x):
+    """``x - mean(x)`` with a corrected mean (two passes: XLA's sum is not pairwise, and its
+    rounding error of ~N eps would otherwise leave a constant image visibly non-constant)."""
+    m = jnp.mean(x)
+    m = m + jnp.mean(x - m)
+    return x - m
+
+
 def _template_stats(t):
-    t0 = t - jnp.mean(t)
+    t0 = _centre(t)
     tn = jnp.sum(t0 * t0)
     e = eps(t.dtype)
-    tflat = tn <= t.size * (16 * e * jnp.max(jnp.abs(t))) ** 2
+    tflat = tn <= t.size * (64 * e * jnp.max(jnp.abs(t))) ** 2
     return t0, tn, tflat
 
 
@@ -140,7 +148,7 @@ def _ncc_core(x, t):
     H, W = x.shape
     h, w = t.shape
     n = h * w
-    xc = x - jnp.mean(x)  # centring does not change the score; it keeps float32 sums small
+    xc = _centre(x)  # centring does not change the score; it keeps float32 sums small
     t0, tn, tflat = _template_stats(t)
     X = jnp.fft.rfft2(xc)
     # the template spectrum on the image grid: rows first (only h non-zero rows)
@@ -251,14 +259,14 @@ def _greedy_peaks(S, thr, min_dist, k: int):
 def _dedupe(rows, cols, scores, valid, min_dist, k: int):
     """Greedy NMS on a candidate list: best first, drop those within ``min_dist`` of a kept one.
 
-    Returns the first ``k`` kept (descending score) as ``(rows, cols, scores,
-    valid, n_kept)`` plus the permutation used (so other per-candidate fields
-    can follow).
+    Returns ``(sel, valid, n_kept)``: indices of the first ``k`` kept candidates
+    (descending score; index any per-candidate field with it), whether each of
+    those slots holds a kept one, and how many were kept in all.
     """
     n = rows.shape[0]
     key = jnp.where(valid, scores, -jnp.inf)
     order = jnp.argsort(-key, stable=True)
-    r, c, s, v = rows[order], cols[order], scores[order], valid[order]
+    r, c, v = rows[order], cols[order], valid[order]
     md2 = jnp.asarray(min_dist, r.dtype) ** 2
 
     def body(i, kept):
@@ -319,9 +327,11 @@ def ncc_map(img: Image, template: Image, /) -> Image:
       values in ``[-1, 1]``. Flat image windows and a flat template give 0 (not
       NaN). Differentiable in both inputs away from flat windows.
 
-    Matches ``cv2.matchTemplate(img, tpl, cv2.TM_CCOEFF_NORMED)`` (float32 input)
-    to 1e-5 and ``skimage.feature.match_template`` to 1e-12 (float64), on
-    ``camera()`` crops with noise. Deliberate deviation: for a constant
+    Matches ``cv2.matchTemplate(img, tpl, cv2.TM_CCOEFF_NORMED)`` to 1e-6 (asserted
+    1e-5) and ``skimage.feature.match_template`` to 1e-12 (float64), on
+    ``camera()`` crops with noise. OpenCV is fed mean-free float32 inputs (the
+    score is offset-invariant): on raw ``[0, 1]`` float32 input its own float32
+    cancellation reaches ~4e-4 in low-contrast windows. Deliberate deviation: for a constant
     template OpenCV returns 1 everywhere, fsjax 0 (the correlation is undefined).
     Float32 input: the box sums have round-off ~1e-7 of the local energy, so
     windows with contrast below ~1e-3 of their mean lose accuracy.
@@ -378,7 +388,7 @@ def _ncc_locate_core(x, t, min_score, min_dist, *, capacity: int, levels: int, c
     Sc = _ncc_core(_block_mean(x, f), _block_mean(t, f))
     cr, ccol, _, cv, ctrunc, _ = _greedy_peaks(Sc, ms - coarse_slack, md / f, n_cand)
 
-    xc = x - jnp.mean(x)
+    xc = _centre(x)
     t0, tn, tflat = _template_stats(t)
     ph, pw = h + m - 1, w + m - 1
     T = jnp.fft.rfft2(t0, s=(ph, pw))
@@ -511,9 +521,9 @@ def _phase_core(a, b, *, upsample: int, window: str):
     e = eps(dt)
     # each image must carry signal beyond rounding once its mean is removed
     scale = jnp.maximum(jnp.max(jnp.abs(a)), jnp.max(jnp.abs(b)))
-    a = a - jnp.mean(a)
-    b = b - jnp.mean(b)
-    floor = H * W * (16 * e * scale) ** 2
+    a = _centre(a)
+    b = _centre(b)
+    floor = H * W * (64 * e * scale) ** 2
     ok = (jnp.sum(a * a) > floor) & (jnp.sum(b * b) > floor)
     if window == "hann":
         win = _hann(H, dt)[:, None] * _hann(W, dt)[None, :]

@@ -377,7 +377,6 @@ def _shape_core(x, t, min_score, min_contrast, min_dist, *, capacity: int, level
     for im in ims[1:]:
         fields.append(_normalised_field(jnp.stack(_smooth_grad(im, sigma), -1), gmin))
     stack = jnp.stack([jnp.pad(f, ((0, H - f.shape[0]), (0, W - f.shape[1]), (0, 0))) for f in fields])
-    shapes = jnp.asarray([f.shape[:2] for f in fields], dt)
 
     # exhaustive search on the top level with an evenly thinned model
     n_top = max(16, max_points // 2 ** top)
