@@ -23,11 +23,17 @@ Conventions:
   scatter-min, then two pointer-jumping steps). Pointers only decrease, so the
   loop reaches its fixed point (every block points at the smallest key of its
   component) after finitely many rounds; there is no iteration cap to hit, and
-  in practice it takes 4-8 rounds (a 30-turn spiral included, see the tests).
+  in practice it takes 4-8 rounds (8 on the test shapes, among them a 127x127
+  spiral that is one path of ~8000 pixels, and combs; 6 on 1024x1024 blobs).
   Labels are then ranked by an exact cumulative sum. For 8-connectivity the
   pointers hold the flat index of a block's first foreground pixel, so each
   root is its component's first pixel.
 * Batching is ``jax.vmap``; a batch runs as many rounds as its slowest member.
+* Speed (2-core CPU, 1024x1024 blobs, 110 components): several times slower
+  than ``scipy.ndimage.label`` (a sequential C two-pass); every round costs a
+  few gathers and one scatter over the ``H W / 4`` (8-connectivity) or
+  ``H W / 2`` (4-connectivity) blocks. The measured figures are in the
+  benchmarks, not here.
 * Nothing here is differentiable (bool in, integers out).
 """
 
@@ -35,7 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp

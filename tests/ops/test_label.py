@@ -29,12 +29,12 @@ def _scipy(mask, conn):
     return lab, n
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _labeller(conn: int, capacity: int = 100_000):
     return jax.jit(lambda m: label_array(m, conn, capacity))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _op(name: str, field: str = "data", **static):
     """A jitted ``op(Region(mask), **static)`` returning one field (compiled once per shape)."""
     fn = getattr(fsjax.ops, name)

@@ -46,7 +46,7 @@ def _ref(r, name):
                   "max_intensity": r.intensity_max}[name])
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _props_fn(capacity: int, grey: bool):
     if grey:
         return jax.jit(lambda lab, img: fsjax.ops.region_props(fsjax.Labels(lab, count=0),
@@ -202,7 +202,7 @@ def test_disc_circularity_bias_of_the_perimeter_estimator():
         r = skimage.measure.regionprops(lab)[0]
         assert abs(float(p["perimeter"][0]) - r.perimeter) < 1e-9
         circ.append(float(p["circularity"][0]))
-    print("disc circularity by radius " + ", ".join(f"{R}: {c:.4f}" for R, c in zip(radii, circ)))
+    print("disc circularity by radius " + ", ".join(f"{R}: {c:.4f}" for R, c in zip(radii, circ, strict=True)))
     assert all(0.90 < c < 0.94 for c in circ)
 
 
