@@ -32,6 +32,11 @@ Conventions:
   vertices, so the polygon lies inside the hull and the count can only fall
   short (by the centres near a vertex that is never found); the centres inside
   or on the polygon are counted row by row with exact integer division.
+* Dtype: the table takes the image's float dtype (``region_shape``: the default
+  float, float64 under x64). Areas, centroid sums, bounding boxes, convex
+  areas and Euler numbers are accumulated in integers (exact); in float32 the
+  moments and the columns derived from them carry about 1e-6 relative error,
+  and ``mean_intensity`` agreed with scikit-image to 2e-6 on coins.
 * Batching is ``jax.vmap``. Nothing here is differentiable (the table depends
   on integer labels; the grey-value columns are differentiable in the image,
   but the registry declares the op as a whole).
