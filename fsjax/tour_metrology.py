@@ -114,14 +114,14 @@ def metrology(out: Path, quick: bool) -> Section:
     # drawn over the truth; x = sweep step)
     z = 3
     x = np.repeat(np.repeat(s["image"], z, axis=0), z, axis=1)
-    for rr, cc in zip(s["edge_rows"].ravel(), s["edge_cols"].ravel()):
+    for rr, cc in zip(s["edge_rows"].ravel(), s["edge_cols"].ravel(), strict=True):
         _mark(x, z * rr + 1, z * cc + 1, 1.0, arm=6)
     mid = np.repeat(np.repeat(sw["images"][len(sw["truth"]) // 2], 6, axis=0), 6, axis=1)
     mid = np.pad(mid, 1, constant_values=float(mid.min()))  # a dark frame: the bright side meets the white page
     h, step = 150, 8
     plot = np.ones((h, step * len(sw["truth"])))
     lo, hi = float(sw["truth"][0]) - 0.6, float(sw["truth"][-1]) + 0.6
-    for i, (tv, mv, nv) in enumerate(zip(sw["truth"], sw["measured"], sw["null"])):
+    for i, (tv, mv, nv) in enumerate(zip(sw["truth"], sw["measured"], sw["null"], strict=True)):
         for v, g in ((tv, 0.6), (nv, 0.0), (mv, 0.3)):
             py = int(round((hi - v) / (hi - lo) * (h - 1)))
             plot[max(0, py - 1):py + 2, step * i:step * i + step - 2] = g
@@ -177,14 +177,14 @@ def measure_alignment() -> dict:
     return {
         "image": img, "truth": truth,
         "found_poses": list(zip(np.asarray(m.row)[v], np.asarray(m.col)[v], np.asarray(m.angle_deg)[v],
-                                np.asarray(m.score)[v])),
+                                np.asarray(m.score)[v], strict=True)),
         "n_valid": int(v.sum()), "truncated": bool(m.truncated),
         "n_found": int(sum(found)), "pos_errors": pos_err, "angle_errors": ang_err,
         "max_pos_error": float(max(pos_err)), "max_angle_error": float(max(abs(a) for a in ang_err)),
         "decoy_distances": decoy_dist, "decoys_matched": int(sum(d <= 20 for d in decoy_dist)),
         "null_found": int(sum(d <= 1.0 for d in ncc_dist)), "null_n_valid": int(np.asarray(nm.valid).sum()),
         "null_nearest": ncc_dist,
-        "null_poses": list(zip(np.asarray(nm.row)[np.asarray(nm.valid)], np.asarray(nm.col)[np.asarray(nm.valid)])),
+        "null_poses": list(zip(np.asarray(nm.row)[np.asarray(nm.valid)], np.asarray(nm.col)[np.asarray(nm.valid)], strict=True)),
     }
 
 
@@ -213,10 +213,10 @@ def alignment(out: Path, quick: bool) -> Section:
     fig = _panel(out / "alignment.png", [img, shown, null_img],
                  ["scene: 3 workpieces + 2 decoys", "shape_locate: model at found poses", "null: ncc_locate (no rotation)"])
     rows = []
-    for (r, c, a), d, da in zip(truth["poses"], res["pos_errors"], res["angle_errors"]):
+    for (r, c, a), d, da in zip(truth["poses"], res["pos_errors"], res["angle_errors"], strict=True):
         rows.append((f"workpiece at ({r:.2f}, {c:.2f}, {a:.1f} deg)",
                      f"position error {d:.3f} px, angle error {da:+.3f} deg"))
-    for (r, c, a, kind), d in zip(truth["decoys"], res["decoy_distances"]):
+    for (r, c, _, kind), d in zip(truth["decoys"], res["decoy_distances"], strict=True):
         rows.append((f"decoy {kind} at ({r:.1f}, {c:.1f})", f"nearest match {d:.1f} px away"))
     rows.append(("null: ncc_locate, unrotated template, min_score 0.5",
                  f"{res['null_found']}/3 within 1 px ({res['null_n_valid']} matches in all)"))
@@ -275,7 +275,7 @@ def bars(out: Path, quick: bool) -> Section:
     fig = _panel(out / "bars.png", [big, marked], ["45 bars", "measured (top) / true (bottom) edges"])
     return Section(
         title="Bar edges along a scan line",
-        truth=f"45 dark bars, widths and gaps uniform in 2-6 px at sub-pixel positions, blur 0.5; 90 edges",
+        truth="45 dark bars, widths and gaps uniform in 2-6 px at sub-pixel positions, blur 0.5; 90 edges",
         rows=[("measure_pairs (sigma 0.5, width 5)",
                f"{res['n_edges']} edges, max |error| {res['max_error']:.3f} px, median {res['median_error']:.3f} px"),
               ("null: max-gradient pixels of the same profile",
