@@ -616,7 +616,8 @@ class Match(Sort):
     +col axis towards -row), ``scale``, ``score`` (method-specific, higher is
     better), ``valid``. Valid instances come first, sorted by descending score;
     ``truncated`` is True when more instances passed the acceptance test than
-    the capacity holds.
+    the capacity holds. Unused slots carry no meaning (the matching ops fill
+    them with zeros and scale 1): always read ``valid``.
     """
 
     row: Float[Array, "*batch K"]
@@ -626,7 +627,7 @@ class Match(Sort):
     score: Float[Array, "*batch K"]
     valid: Bool[Array, "*batch K"]
     truncated: Bool[Array, "*batch"]
-    _float_fields = ()  # invalid slots hold NaN by design
+    _float_fields = ()  # unused slots are not checked
 
     def __init__(self, row: Any, col: Any, score: Any, valid: Any = None, angle_deg: Any = None,
                  scale: Any = None, truncated: Any = False):
