@@ -6,6 +6,20 @@ from it. A family that introduces a sort registers its builder with
 :func:`register_pool`.
 """
 
+from ._defects import DEFECT_KINDS as DEFECT_KINDS
+from ._defects import Defect as Defect
+from ._defects import surface_defects as surface_defects
+from ._inspection import bar_code as bar_code
+from ._inspection import blurred_disc as blurred_disc
+from ._inspection import edge_sweep as edge_sweep
+from ._inspection import shaft as shaft
+from ._inspection import step_edge as step_edge
+from ._inspection import tilted_edge as tilted_edge
+from ._particles import particle_scene as particle_scene
 from ._pool import register_pool as register_pool
 from ._pool import standard_input as standard_input
 from ._pool import standard_scene as standard_scene
+from ._workpiece import PART_KINDS as PART_KINDS
+from ._workpiece import alignment_scene as alignment_scene
+from ._workpiece import render_part as render_part
+from ._workpiece import workpiece_template as workpiece_template
