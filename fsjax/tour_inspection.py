@@ -57,7 +57,7 @@ import numpy as np
 
 from fsjax import Image, Labels, RegionProps
 from fsjax import ops as O
-from fsjax.synth._defects import DEFECT_KINDS, surface_defects
+from fsjax.synth._defects import surface_defects
 from fsjax.synth._particles import particle_scene
 from fsjax.tour import Section, _panel
 
@@ -90,7 +90,7 @@ PARTICLE_MAX_AREA = 150.0
 # ---------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _background_fn(shape: tuple[int, int], factor: int, radius: int):
     small = (max(1, shape[0] // factor), max(1, shape[1] // factor))
 
@@ -132,7 +132,7 @@ def classify_defects(props: RegionProps, *, min_area: float = 8.0):
     return jnp.where(keep, code, 0).astype(jnp.int32)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _detect_fn(sigma: float, low: float, high: float, min_area: float, capacity: int):
     def run(img: Image, background: Image):
         sm = O.gaussian(img, sigma=sigma)
@@ -230,7 +230,7 @@ def inspect_surface(image, defects, *, otsu_null: bool = True, **kw) -> dict:
 # ---------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _particles_fn(capacity: int):
     def run(img: Image, h):
         region = O.otsu(img)

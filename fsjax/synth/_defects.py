@@ -102,7 +102,7 @@ def _dist_to_polyline(rr, cc, pts, reach: float):
     """
     d2 = np.full(rr.shape, np.inf)
     r_lo, c_lo = rr[0, 0], cc[0, 0]
-    for a, b in zip(pts[:-1], pts[1:]):
+    for a, b in zip(pts[:-1], pts[1:], strict=True):
         i0 = max(0, int(math.floor(min(a[0], b[0]) - reach - r_lo)))
         i1 = min(rr.shape[0], int(math.ceil(max(a[0], b[0]) + reach - r_lo)) + 1)
         j0 = max(0, int(math.floor(min(a[1], b[1]) - reach - c_lo)))
@@ -220,6 +220,9 @@ def surface_defects(
     placed: list[tuple[float, float, float]] = []
     for s in specs:
         ext = extent(s)
+        if min(h, w) - 2 * (margin + ext) <= 0:
+            raise ValueError(f"surface_defects: cannot place a {s['kind']} of extent {ext:.0f} px in {size} "
+                             f"(margin {margin}); use a larger size")
         for _ in range(10_000):
             y, x = rng.uniform(margin + ext, h - margin - ext), rng.uniform(margin + ext, w - margin - ext)
             if all(math.hypot(y - y2, x - x2) >= ext + e2 + clearance for y2, x2, e2 in placed):

@@ -41,7 +41,7 @@ def _components8(mask: np.ndarray) -> int:
     seen = np.zeros_like(mask)
     n = 0
     h, w = mask.shape
-    for i0, j0 in zip(*np.nonzero(mask)):
+    for i0, j0 in zip(*np.nonzero(mask), strict=True):
         if seen[i0, j0]:
             continue
         n += 1
@@ -121,11 +121,11 @@ def particle_scene(
                 return False
         return True
 
-    tries = 0
+    tries = 0  # since the last placed disc
     pairs = []
     while len(discs) < n_particles:
         tries += 1
-        if tries > 200_000:
+        if tries > 20_000:
             raise ValueError(f"particle_scene: cannot place {n_particles} discs in {size}; use a larger size")
         if len(pairs) < n_pairs:
             r1, r2 = rng.uniform(*radius, 2)
@@ -135,10 +135,12 @@ def particle_scene(
             if fits(cand):
                 pairs.append((len(discs), len(discs) + 1))
                 discs += cand
+                tries = 0
         else:
             r, y, x = rng.uniform(*radius), rng.uniform(0, h), rng.uniform(0, w)
             if fits([(y, x, r)]):
                 discs.append((y, x, r))
+                tries = 0
 
     centres = np.array([(y, x) for y, x, _ in discs])
     radii = np.array([r for _, _, r in discs])
@@ -163,7 +165,7 @@ def particle_scene(
     # rendering: painted discs with sub-pixel area coverage, blur, noise
     img = np.full(size, float(background))
     off = (np.arange(ss) + 0.5) / ss - 0.5
-    for (y, x, r), g in zip(discs, grey):
+    for (y, x, r), g in zip(discs, grey, strict=True):
         r0, r1 = max(0, int(y - r) - 1), min(h, int(y + r) + 3)
         c0, c1 = max(0, int(x - r) - 1), min(w, int(x + r) + 3)
         rr, cc = np.mgrid[r0:r1, c0:c1].astype(float)
