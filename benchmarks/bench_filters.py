@@ -24,13 +24,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
-import platform
 import sys
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -247,7 +247,6 @@ def make_competitors(op: str, batch: np.ndarray, have_fsjax: bool) -> tuple[list
     comps: list[Competitor] = []
     missing: list[str] = []
     n = len(batch)
-    nbytes_out = batch.nbytes
 
     # ---- fsjax
     if have_fsjax:
@@ -534,13 +533,13 @@ def format_table(results: list[OpResult], n: int | None = None) -> str:
     for r in results:
         rows += table_rows(r, n or _batch_n(r))
     widths = [max(len(h), *(len(row[i]) for row in rows)) for i, h in enumerate(HEADER)]
-    lines = ["  ".join(h.ljust(w) for h, w in zip(HEADER, widths))]
-    lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths)) for row in rows]
+    lines = ["  ".join(h.ljust(w) for h, w in zip(HEADER, widths, strict=True))]
+    lines += ["  ".join(v.ljust(w) for v, w in zip(row, widths, strict=True)) for row in rows]
     return "\n".join(lines)
 
 
 def markdown_table(results: list[OpResult], n: int) -> str:
-    lines = ["| " + " | ".join(HEADER) + " |", "|" + "---|" * len(HEADER)]
+    lines = ["| " + " | ".join(h.replace("|", "\\|") for h in HEADER) + " |", "|" + "---|" * len(HEADER)]
     for r in results:
         for row in table_rows(r, n):
             lines.append("| " + " | ".join(row) + " |")
@@ -556,6 +555,7 @@ def _batch_n(_r: OpResult) -> int:
 
 def plot(res: OpResult, path: Path) -> None:
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -573,6 +573,9 @@ def plot(res: OpResult, path: Path) -> None:
         ax.plot([x], [yf], marker="o", mfc="none", color=col, ms=11, ls="none")
     ax.set_xscale("log")
     ax.set_yscale("log")
+    ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
     ax.set_ylim(floor / 3, 1.0)
     ax.set_xlabel(f"time per batch of {_N['n']} images, s (median, IQR bars; log)")
     ax.set_ylabel("max |diff| vs SciPy float64 (log, floor 1e-16)")
@@ -672,6 +675,11 @@ def write_docs(results: list[OpResult], args, meta: dict[str, Any]) -> None:
              "(goal 2). Result of this run:")
     L.append("")
     L += goals(results, n)
+    loads = [x[0] for r in results for x in (r.load_before, r.load_after) if x]
+    if loads:
+        L.append("")
+        L.append(f"Timed with a 1-minute load average between {min(loads):.1f} and {max(loads):.1f} on 2 cores "
+                 "(a shared machine): absolute times are inflated and ratios are noisy; see the analysis below.")
     L.append("")
     L.append("## Machine and libraries")
     L.append("")
@@ -681,6 +689,7 @@ def write_docs(results: list[OpResult], args, meta: dict[str, Any]) -> None:
              f"Load average (1, 5, 15 min) at the start: {_fmt_load(meta['load_start'])}, at the end: "
              f"{_fmt_load(meta['load_end'])} (2 cores: a load above 2 means other work competed for the CPU); "
              "per-op load is printed by the script.")
+    L.append(f"* fsjax source: commit {meta.get('git', 'unknown')}.")
     L.append("* Versions: " + ", ".join(f"{k} {val}" for k, val in v.items()) + ".")
     L.append("* Threads: " + "; ".join(f"{k}: {val}" for k, val in meta["threads"].items())
              + ". Every library runs with its default threading (SciPy and scikit-image are single-threaded; "
@@ -749,6 +758,10 @@ def write_docs(results: list[OpResult], args, meta: dict[str, Any]) -> None:
     L.append("")
     L.append(markdown_table(results, n))
     L.append("")
+    L.append("Load average (1 min) while each op was timed: "
+             + "; ".join(f"{r.op} {_fmt_load(r.load_before).split(',')[0]} -> {_fmt_load(r.load_after).split(',')[0]}"
+                         for r in results) + ".")
+    L.append("")
     notes = [f"* {r.op}, {c.method}: {c.note}" for r in results for c in r.comps if c.note]
     if notes:
         L.append("Per-method notes:")
@@ -794,7 +807,20 @@ def main(argv: list[str] | None = None) -> int:
                    help="images per step of the fsjax jit(lax.map) variant (default %(default)s)")
     p.add_argument("--ops", default=",".join(OPS), help="comma-separated subset of " + ",".join(OPS))
     p.add_argument("--write-docs", action="store_true", help="write docs/benchmarks.md and docs/figures/bench_*.png")
+    p.add_argument("--json", default=str(HERE / "results" / "filters.json"),
+                   help="where the measured results are saved (default %(default)s)")
+    p.add_argument("--from-json", action="store_true",
+                   help="do not measure: load --json and (with --write-docs) regenerate the docs from it")
     args = p.parse_args(argv)
+    if args.from_json:
+        results, meta, saved = load_results(Path(args.json))
+        for k in ("quick", "batch", "size", "repeats", "warmup", "seed", "map_batch"):
+            setattr(args, k, saved[k])
+        _N["n"] = args.batch
+        print(format_table(results))
+        if args.write_docs:
+            write_docs(results, args, meta)
+        return 0
     args.batch = args.batch or (8 if args.quick else 64)
     args.repeats = args.repeats or (3 if args.quick else 15)
     args.warmup = args.warmup if args.warmup is not None else (1 if args.quick else 2)
@@ -807,6 +833,7 @@ def main(argv: list[str] | None = None) -> int:
 
     meta: dict[str, Any] = {
         "date": time.strftime("%Y-%m-%d %H:%M %Z"),
+        "git": git_state(),
         "machine": machine_info(),
         "versions": versions(),
         "threads": threads(),
@@ -832,9 +859,63 @@ def main(argv: list[str] | None = None) -> int:
                       f"differs from the stated {c.scale:.5g}")
         for m in r.missing:
             print(f"not run: {r.op}: {m}")
+    save_results(Path(args.json), results, meta, args)
     if args.write_docs:
         write_docs(results, args, meta)
     return 0
+
+
+_SAVED_FIELDS = ("method", "kind", "scale", "compile_s", "mem_bytes", "mem_method", "note",
+                 "diff_interior", "diff_full", "fitted_scale")
+
+
+def save_results(path: Path, results: list[OpResult], meta: dict[str, Any], args) -> None:
+    import json
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {
+        "args": {k: getattr(args, k) for k in ("quick", "batch", "size", "repeats", "warmup", "seed", "map_batch")},
+        "meta": meta,
+        "results": [
+            {"op": r.op, "missing": r.missing, "load_before": r.load_before, "load_after": r.load_after,
+             "comps": [{**{k: getattr(c, k) for k in _SAVED_FIELDS}, "times": c.times.times} for c in r.comps]}
+            for r in results
+        ],
+    }
+    path.write_text(json.dumps(doc, indent=1))
+    log(f"saved {path}")
+
+
+def load_results(path: Path) -> tuple[list[OpResult], dict[str, Any], dict[str, Any]]:
+    import json
+
+    from _harness import Timing
+
+    doc = json.loads(path.read_text())
+    results = []
+    for r in doc["results"]:
+        comps = []
+        for d in r["comps"]:
+            c = Competitor(d["method"], run=lambda: None, to_numpy=np.asarray, kind=d["kind"])
+            for k in _SAVED_FIELDS:
+                setattr(c, k, d[k])
+            c.times = Timing(c.method, list(d["times"]))
+            comps.append(c)
+        results.append(OpResult(r["op"], comps, r["missing"], r["load_before"], r["load_after"]))
+    return results, doc["meta"], doc["args"]
+
+
+def git_state() -> str:
+    import subprocess
+
+    try:
+        head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--", "fsjax"],
+                               capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return head + (" (fsjax/ has uncommitted changes)" if dirty else "")
 
 
 if __name__ == "__main__":
