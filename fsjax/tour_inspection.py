@@ -319,7 +319,7 @@ def surface_defects_section(out: Path, quick: bool) -> Section:
             extra = "no single region"
         rows.append((f"{d.kind} at ({d.centre[0]:.0f}, {d.centre[1]:.0f}), contrast {d.contrast:+.3f}",
                      f"-> {s['assigned'][i]} ({extra})"))
-    rows += [("fsjax: median background (1/8 size, r=3) + hysteresis(|diff|, 0.03, 0.05) + rule", _fmt_score(s, n)),
+    rows += [("fsjax: median background (1/8 size, r=3) + hysteresis(abs diff, 0.03, 0.05) + rule", _fmt_score(s, n)),
              ("null: same chain, flat background (global median level)", _fmt_score(sn, n))]
     null_fig = f"global level: {_fmt_score(sn, n)}"
     if "otsu_score" in r:
