@@ -807,11 +807,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="images per step of the fsjax jit(lax.map) variant (default %(default)s)")
     p.add_argument("--ops", default=",".join(OPS), help="comma-separated subset of " + ",".join(OPS))
     p.add_argument("--write-docs", action="store_true", help="write docs/benchmarks.md and docs/figures/bench_*.png")
-    p.add_argument("--json", default=str(HERE / "results" / "filters.json"),
-                   help="where the measured results are saved (default %(default)s)")
+    p.add_argument("--json", default=None,
+                   help="where the measured results are saved (default benchmarks/results/filters.json, "
+                        "filters_quick.json with --quick)")
     p.add_argument("--from-json", action="store_true",
                    help="do not measure: load --json and (with --write-docs) regenerate the docs from it")
     args = p.parse_args(argv)
+    if args.json is None:
+        args.json = str(HERE / "results" / ("filters_quick.json" if args.quick else "filters.json"))
     if args.from_json:
         results, meta, saved = load_results(Path(args.json))
         for k in ("quick", "batch", "size", "repeats", "warmup", "seed", "map_batch"):
