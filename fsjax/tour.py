@@ -347,6 +347,14 @@ SECTIONS: list[Callable[[Path, bool], Section]] = [
 ]
 
 
+def all_sections() -> list[Callable[[Path, bool], Section]]:
+    """Every tour section: the 2-D basics here, then inspection and metrology scenes."""
+    from .tour_inspection import SECTIONS as inspection
+    from .tour_metrology import SECTIONS as metrology
+
+    return [*SECTIONS, *inspection, *metrology]
+
+
 def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=print) -> list[Section]:
     """Run every section, write figures and ``report.md`` into ``out_dir``; return the sections."""
     jax.config.update("jax_enable_x64", True)
@@ -354,7 +362,7 @@ def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=pri
     out.mkdir(parents=True, exist_ok=True)
     results: list[Section] = []
     t_all = time.perf_counter()
-    todo = SECTIONS if sections is None else sections
+    todo = all_sections() if sections is None else sections
     for i, fn in enumerate(todo):
         t0 = time.perf_counter()
         log(f"[{i + 1}/{len(todo)}] {fn.__name__} ...", end="", flush=True) if log is print else log(fn.__name__)
