@@ -5,9 +5,10 @@ Conventions:
 * Fixed capacity ``K`` (static ``capacity``): row ``k`` of the table describes
   label ``k + 1``; labels above ``K`` are not measured and set ``truncated``.
   ``valid`` is True for labels that have at least one pixel. Rows of absent
-  labels hold 0 (finite, like the unused slots of ``Contour`` and ``Match``) and
-  must be read through ``valid``. A valid row holds NaN only where a feature is
-  undefined for that shape (``circularity`` of a region whose perimeter is 0).
+  labels hold NaN (the ``RegionProps`` contract: a mean over a column fails
+  closed unless it is read through ``valid``). A valid row holds NaN only where
+  a feature is undefined for that shape (``circularity`` of a region whose
+  perimeter is 0).
 * Coordinates: pixel centres on integer ``(row, col)``; bounding boxes are
   half-open ``[min, max)`` as in scikit-image. Central moments ``muPQ`` are the
   raw sums ``sum (r - r_bar)^P (c - c_bar)^Q`` over the label's pixels (P for
@@ -310,7 +311,7 @@ def _table_core(data, truncated_in, image, *, names, K: int, order: int, rounds:
         cols["min_intensity"] = jax.ops.segment_min(x, seg, num_segments=K + 1)
         cols["max_intensity"] = jax.ops.segment_max(x, seg, num_segments=K + 1)
     valid = area[1:] > 0
-    table = jnp.stack([jnp.where(valid, cols[n][1:].astype(dt), 0.0) for n in names], -1)
+    table = jnp.stack([jnp.where(valid, cols[n][1:].astype(dt), jnp.nan) for n in names], -1)
     truncated = truncated_in | jnp.any(data > K)
     return table, valid, truncated
 
