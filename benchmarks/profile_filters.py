@@ -34,39 +34,9 @@ from _harness import jax_compile, time_round_robin  # noqa: E402
 from bench_filters import _fsjax_call, make_batch, reference  # noqa: E402
 
 
-def batcher_pairs(n: int) -> list[tuple[int, int]]:
-    """Comparators of Batcher's odd-even merge sort for ``n`` (a power of two) inputs."""
-    pairs = []
-    p = 1
-    while p < n:
-        k = p
-        while k >= 1:
-            for j in range(k % p, n - k, 2 * k):
-                for i in range(min(k, n - j - k)):
-                    if (i + j) // (2 * p) == (i + j + k) // (2 * p):
-                        pairs.append((i + j, i + j + k))
-            k //= 2
-        p *= 2
-    return pairs
-
-
-def selection_network(n: int, rank: int) -> list[tuple[int, int]]:
-    """Comparators (lo, hi) that put the sample of ``rank`` of ``n`` inputs at position ``rank``.
-
-    Batcher's network for the next power of two; padding inputs are +inf, so a
-    comparator that touches one is a no-op and is dropped; then a backward pass
-    keeps only comparators whose outputs can reach position ``rank``.
-    """
-    big = 1
-    while big < n:
-        big *= 2
-    net = [(a, b) for a, b in batcher_pairs(big) if b < n]
-    need, keep = {rank}, []
-    for a, b in reversed(net):
-        if a in need or b in need:
-            keep.append((a, b))
-            need |= {a, b}
-    return keep[::-1]
+# The exact selection network now lives in fsjax (median fast path); reuse it.
+from fsjax.ops._filters import _batcher_pairs as batcher_pairs  # noqa: E402
+from fsjax.ops._filters import _selection_network as selection_network  # noqa: E402
 
 
 def main(argv=None) -> int:
