@@ -73,7 +73,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     pipe = fsjax.pipeline(stages)
     want_color = args.color or pipe.takes is fsjax.Color
     x = io.read_image(args.input, as_grey=not want_color)
-    print(f"input: {args.input} -> {type(x).__name__} {tuple(getattr(x, 'data').shape)}"
+    print(f"input: {args.input} -> {type(x).__name__} {tuple(x.data.shape)}"
           + (f" ({x.conversion})" if getattr(x, "conversion", None) else ""))
     if not isinstance(x, pipe.takes):
         raise SystemExit(f"fsjax run: stage 1 takes {pipe.takes.__name__}, the file gives {type(x).__name__}")

@@ -193,7 +193,7 @@ def thresholds(out: Path, quick: bool) -> Section:
                  ["ramp+objects", "truth", "fixed", "otsu", "sauvola", "local_mean", "dyn_thr"])
     return Section(
         title="Segmentation under an illumination ramp",
-        truth=f"14 discs of contrast 0.25 on a ramp 0.15..0.70, noise 0.02; pixel error rate vs the true mask",
+        truth="14 discs of contrast 0.25 on a ramp 0.15..0.70, noise 0.02; pixel error rate vs the true mask",
         rows=[(k, f"{100 * v:.2f} % pixels wrong") for k, v in errs.items()],
         fsjax_figure=f"best local method {100 * local_best:.2f} %",
         null_figure=f"fixed threshold {100 * null:.2f} %, global Otsu {100 * errs['otsu (global)']:.2f} %",

@@ -13,7 +13,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import float_leaves, inputs_for, stack_trees, tree_allclose, tree_max_diff, unstack_tree
+from helpers import (
+    float_leaves,
+    inputs_for,
+    stack_trees,
+    tree_allclose,
+    tree_max_diff,
+    unstack_tree,
+)
 
 import fsjax
 

@@ -275,7 +275,7 @@ def _batcher_pairs(n: int) -> list[tuple[int, int]]:
     return pairs
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _selection_network(n: int, rank: int) -> tuple[tuple[int, int], ...]:
     """Comparators ``(lo, hi)`` that leave the sample of ``rank`` (of ``n``) at position ``rank``.
 
