@@ -40,7 +40,6 @@ Conventions (stated once for the family):
 from __future__ import annotations
 
 import functools
-import math
 
 import jax
 import jax.numpy as jnp
@@ -214,8 +213,9 @@ def fit_line(c: Contour, /, *, robust: bool = True, k: float = 3.0, rounds: int 
       along it. ``converged=False`` with NaN for fewer than 2 points or
       coincident points or an isotropic point cloud (direction undefined).
 
-    Matches ``cv2.fitLine(..., DIST_L2)`` (the same estimator) to 1e-9 px and
-    1e-9 rad on noisy samples (tested).
+    Matches the SVD total-least-squares solution to 1e-9 (px and degrees) and
+    ``cv2.fitLine(..., DIST_L2)`` (the same estimator, float32 input) to 1e-4
+    on noisy samples (tested; measured 7e-15 and 7e-7).
 
     Example:
       Points on the line through (10, 5) rising at 30 degrees on screen:
@@ -323,10 +323,12 @@ def fit_circle(c: Contour, /, *, robust: bool = True, k: float = 3.0, rounds: in
       ``converged=False`` with NaN for fewer than 3 points, collinear points
       or a failed solve.
 
-    Geometric accuracy (tested): points on a circle of radius 20 with Gaussian
-    noise ``sigma`` along the normal give a radius error well within
-    ``3 sigma / sqrt(n)``; the fit agrees with ``skimage.measure.CircleModel``
-    (geometric least squares) to 1e-6 px.
+    Accuracy (tested): 200 points on a circle of radius 15.2 with radial
+    Gaussian noise ``sigma`` give a radius error within ``4 sigma / sqrt(n)``
+    (printed per noise level); the refined fit agrees with a SciPy
+    ``least_squares`` geometric fit to 1e-6 px (measured 3e-10), and the Kasa
+    centre (``refine=False``) with ``skimage.measure.CircleModel`` (an
+    algebraic fit) to 1e-9 px.
 
     Example:
       Twelve exact points of a circle centred at (7.5, -3.25) with radius 4:
@@ -552,9 +554,10 @@ def fit_ellipse(c: Contour, /, *, robust: bool = True, k: float = 3.0, rounds: i
       circle). ``converged=False`` with NaN for fewer than 5 points, collinear
       points, a non-elliptic conic or a failed solve.
 
-    Agrees with ``cv2.fitEllipseDirect`` (the same direct estimator) on the
-    direct fit (``refine=False``) to 1e-6 px (tested; OpenCV reports full axes
-    in float32 internally).
+    The direct fit (``refine=False``) agrees with ``cv2.fitEllipseDirect``
+    (the same estimator; points passed as float32) to 1e-3 px asserted,
+    3e-7 px measured. On noisy points the refinement lowers the orthogonal
+    RMS and the parameter error relative to the direct fit (tested).
 
     Example:
       Exact points of the ellipse centred at (20, 30), a = 12, b = 5, major

@@ -231,7 +231,7 @@ def shaft(diameters: tuple[float, ...] = (18.35, 30.7, 24.15), *, shape: tuple[i
     if np.any(np.diff(s) < section_length):
         raise ValueError("shaft: sections overlap; increase the spacing of 'starts'")
     top, bottom = axis_row - d / 2, axis_row + d / 2
-    cov = _rects(shape, [(t, b, c, c + section_length) for t, b, c in zip(top, bottom, s)], blur)
+    cov = _rects(shape, [(t, b, c, c + section_length) for t, b, c in zip(top, bottom, s, strict=True)], blur)
     img = hi - (hi - lo) * cov
     return img, {"diameters": d, "top": top, "bottom": bottom, "centre_cols": s + section_length / 2,
                  "axis_row": float(axis_row)}
@@ -259,7 +259,7 @@ def bar_code(n_bars: int = 45, *, seed: int = 7, height: int = 15, first: float 
     w = int(math.ceil(ends[-1] + first))
     cols = np.arange(w, dtype=float)
     cov = np.zeros(w)
-    for a, b in zip(starts, ends):
+    for a, b in zip(starts, ends, strict=True):
         cov += _interval(cols, a, b, blur)
     img = np.broadcast_to(hi - (hi - lo) * cov, (height, w)).copy()
     bars = np.stack([starts, ends], axis=1)
