@@ -749,7 +749,8 @@ class Edges1D(Sort):
     ``pos`` is the sub-pixel position along the profile in pixels from its start;
     ``row``/``col`` the image position; ``amplitude`` the signed derivative at the
     edge (positive = dark-to-light along the profile); ``width`` the distance to
-    the paired edge for edge pairs (NaN for single edges). Valid edges come first
+    the paired edge for edge pairs (0 for single edges from ``measure_pos`` and for
+    unused slots: read ``valid`` and the op that made it). Valid edges come first
     in profile order; ``truncated`` flags lost edges.
     """
 
@@ -769,7 +770,7 @@ class Edges1D(Sort):
         self.row = _as_array(row, sort="Edges1D", field="row", kind="float", min_ndim=1)
         self.col = _as_array(col, sort="Edges1D", field="col", kind="float", min_ndim=1)
         self.amplitude = _as_array(amplitude, sort="Edges1D", field="amplitude", kind="float", min_ndim=1)
-        self.width = _as_array(jnp.full(shape, jnp.nan, dt) if width is None else width, sort="Edges1D",
+        self.width = _as_array(jnp.zeros(shape, dt) if width is None else width, sort="Edges1D",
                                field="width", kind="float", min_ndim=1)
         self.valid = _as_array(valid, sort="Edges1D", field="valid", kind="bool", min_ndim=1)
         for name in ("row", "col", "amplitude", "width", "valid"):
