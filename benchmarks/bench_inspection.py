@@ -806,7 +806,7 @@ def plot(res: Result, path: Path) -> None:
         med, q1, q3 = (1e3 * v / c.n for v in (c.times.median, c.times.q1, c.times.q3))
         ax.barh(yi, med, color=colors.get(c.lib, "grey"), alpha=0.85)
         ax.errorbar([med], [yi], xerr=[[med - q1], [q3 - med]], color="k", capsize=3, lw=1)
-        ax.text(med * 1.08, yi, f"{med:.1f} ms", va="center", fontsize=8)
+        ax.text(max(q3, med) * 1.12, yi, f"{med:.1f} ms", va="center", fontsize=8)
     ax.set_yticks(y)
     ax.set_yticklabels([c.method if len(c.method) < 46 else c.method[:44] + "..." for c in comps], fontsize=7)
     ax.set_xscale("log")
