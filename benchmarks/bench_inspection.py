@@ -420,7 +420,8 @@ def build_ncc(imgs: np.ndarray, tpls: np.ndarray, pos: list, batch: bool) -> tup
         acc64[c.method] = (float(d64.max()), d64_tex)
         c.accuracy = (f"max|diff| vs OpenCV {_fmt(d_cv)}; vs float64 {_fmt(float(d64.max()))} "
                       f"(windows with sd >= {NCC_SD:g}: {_fmt(d64_tex)}); peak at the cut position {hit}/{k}")
-    return comps, [], {"textured_fraction": float(textured[0].mean()), "acc64": acc64}
+    return comps, [], {"textured_fraction": float(textured[0].mean()), "acc64": acc64,
+                       "sd_min": float(window_sd(imgs[0], tpls.shape[1], tpls.shape[2]).min())}
 
 
 NCC_SD = 0.05  # window standard deviation (grey levels of [0, 1]) above which a window counts as textured
@@ -984,8 +985,8 @@ def ncc_accuracy_note(r: Result | None) -> str:
     return (" Accuracy against float64 (max |diff|): " + "; ".join(parts)
             + f" (such windows are {100 * r.extra['textured_fraction']:.0f} % of image 1). The errors of all three "
             "grow as the window's standard deviation falls, since the score divides by it and the float32 "
-            "round-off of the sums does not shrink with it; the noise added to the inputs keeps every window's "
-            "sd above 0.0098. scikit-image computes in float32 for a float32 input (its output is float32) "
+            "round-off of the sums does not shrink with it (the noise added to the inputs keeps every window's "
+            f"sd above {r.extra['sd_min']:.4f} in image 1). scikit-image computes in float32 for a float32 input (its output is float32) "
             "and loses most.")
 
 
@@ -1020,8 +1021,8 @@ def analysis(p: dict, results: list[Result]) -> list[str]:
         f"runs in a `lax.while_loop` to its fixed point ({_span(rounds)} rounds here plus the round "
         "that detects it). Every round touches every node, whatever the number of components: a neighbour "
         "minimum over 8 directions, one scatter-min and three gathers. The block graph plus the loop take "
-        f"{uf:.1f} ms, about {per_round:.1f} ms per round, of which the scatter and the gathers are "
-        f"{gs:.1f} ms (measured alone on random indices). The rest of `label` "
+        f"{uf:.1f} ms, about {per_round:.1f} ms per round, which is what one scatter-min and three gathers "
+        f"over all nodes cost when measured alone on random indices ({gs:.1f} ms). The rest of `label` "
         f"({ms['fsjax label'] - uf:.1f} ms) is the exact raster-order ranking (which makes the labels "
         "identical to SciPy's) and the scatter of the labels back to pixels. SciPy, scikit-image and OpenCV "
         "label in one or two sequential raster passes with a small equivalence table, touching each pixel a "
