@@ -1027,7 +1027,8 @@ def analysis(p: dict, results: list[Result]) -> list[str]:
         "identical to SciPy's) and the scatter of the labels back to pixels. SciPy, scikit-image and OpenCV "
         "label in one or two sequential raster passes with a small equivalence table, touching each pixel a "
         "couple of times: SciPy's whole labelling "
-        f"({ms['SciPy ndi.label']:.1f} ms) costs about as much as one or two of fsjax's rounds. Getting within "
+        f"({ms['SciPy ndi.label']:.1f} ms) costs as much as {ms['SciPy ndi.label'] / per_round:.1f} of fsjax's "
+        "rounds. Getting within "
         "2x of SciPy on this CPU would need fewer rounds and cheaper ones at once (an untested idea: label "
         "small tiles locally first, then run the union-find on tile borders only).")
     L.append(
