@@ -34,6 +34,7 @@ from jaxtyping import Array, Float
 from ..registry import LinKnob, register
 from ..types import Feature, Image, is_concrete
 from ._common import check_choice, check_mode, check_positive, check_range, correlate1d
+from ._filters import gaussian_weights
 
 __all__ = [
     "mean",
@@ -504,14 +505,6 @@ def psnr(reference: Image, test: Image, /, *, data_range: float = 1.0) -> Featur
     return Feature(val, unit="dB")
 
 
-def _gauss_taps(sigma: float, truncate: float, dtype) -> tuple[int, Float[Array, " K"]]:
-    """Normalised Gaussian taps of SciPy's radius ``int(truncate * sigma + 0.5)``."""
-    radius = int(truncate * sigma + 0.5)
-    k = jnp.arange(-radius, radius + 1, dtype=dtype)
-    w = jnp.exp(-0.5 * (k / sigma) ** 2)
-    return radius, w / jnp.sum(w)
-
-
 _SSIM_TRUNCATE = 3.5  # 11 taps at sigma 1.5, as Wang et al. 2004 and scikit-image
 
 
@@ -582,7 +575,8 @@ def ssim(reference: Image, test: Image, /, *, sigma: float = 1.5, k1: float = 0.
     check_positive(op, "data_range", data_range)
     x, y = reference.data, test.data
     dt = jnp.result_type(x, y)
-    radius, w = _gauss_taps(float(sigma), _SSIM_TRUNCATE, dt)
+    w = gaussian_weights(float(sigma), _SSIM_TRUNCATE).astype(dt)
+    radius = (w.shape[0] - 1) // 2
     h, wd = x.shape[-2:]
     win = 2 * radius + 1
     if h < win or wd < win:

@@ -78,6 +78,7 @@ from ._common import (
     eps,
     float_dtype,
 )
+from ._filters import gaussian_weights
 
 __all__ = ["mirror", "translate", "rotate", "zoom", "shear", "affine_warp", "resize"]
 
@@ -611,14 +612,6 @@ def resize(img: Image, /, *, shape: tuple[int, int] | None = None, factor: float
     return Image(out)
 
 
-def _gauss_taps(sigma: float, truncate: float = 4.0) -> np.ndarray:
-    """Static normalised Gaussian taps, SciPy's rule (radius ``int(truncate sigma + 0.5)``)."""
-    radius = int(truncate * sigma + 0.5)
-    k = np.arange(-radius, radius + 1, dtype=float)
-    wts = np.exp(-0.5 * (k / sigma) ** 2)
-    return wts / wts.sum()
-
-
 @functools.partial(jax.jit, static_argnames=("shape", "method", "mode", "antialias"))
 def _resize_core(x, cubic_a, *, shape, method, mode, antialias):
     h, w = x.shape[-2:]
@@ -629,7 +622,7 @@ def _resize_core(x, cubic_a, *, shape, method, mode, antialias):
         if antialias and ratio > 1.0:
             sigma = (ratio - 1.0) / 2.0
             mode_f = "wrap" if mode == "grid-wrap" else ("constant" if "constant" in mode else mode)
-            out = correlate1d(out, jnp.asarray(_gauss_taps(sigma), dt), axis=axis, mode=mode_f)
+            out = correlate1d(out, gaussian_weights(sigma).astype(dt), axis=axis, mode=mode_f)
         pos = (jnp.arange(n_out, dtype=dt) + 0.5) * ratio - 0.5
         out = sample1d(out, pos, axis, method=method, mode=mode, cubic_a=cubic_a)
     return out
