@@ -21,6 +21,7 @@ from ._matching import *  # noqa: F403
 from ._measure import *  # noqa: F403
 from ._morphology import *  # noqa: F403
 from ._point import *  # noqa: F403
+from ._points import *  # noqa: F403
 from ._segment import *  # noqa: F403
 from ._skeleton import *  # noqa: F403
 from ._threshold import *  # noqa: F403
