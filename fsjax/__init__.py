@@ -5,7 +5,10 @@ The public API: the sorts (typed pytrees), the op registry, the uniform call
 :mod:`fsjax.ops` (``fsjax.ops.gaussian(img, sigma=2.0)``).
 """
 
+from . import data as data
+from . import fit as fit
 from . import ops as ops
+from . import render as render
 from .pipeline import Pipeline as Pipeline
 from .pipeline import PipelineTypeError as PipelineTypeError
 from .pipeline import apply as apply

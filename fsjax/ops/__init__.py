@@ -6,6 +6,7 @@ importing this package registers every op.
 
 from ._binary import *  # noqa: F403
 from ._caliper import *  # noqa: F403
+from ._camera import *  # noqa: F403
 from ._color import *  # noqa: F403
 from ._contours import *  # noqa: F403
 from ._distance import *  # noqa: F403
@@ -22,6 +23,7 @@ from ._measure import *  # noqa: F403
 from ._morphology import *  # noqa: F403
 from ._point import *  # noqa: F403
 from ._points import *  # noqa: F403
+from ._points_search import *  # noqa: F403
 from ._segment import *  # noqa: F403
 from ._skeleton import *  # noqa: F403
 from ._threshold import *  # noqa: F403

@@ -1,1 +1,6 @@
-"""fsjax.render (placeholder for later issues)."""
+"""fsjax.render: the camera model, renderers and shading.
+
+Submodules add their public names here with one ``from .<module> import *`` line each.
+"""
+
+from .camera import *  # noqa: F403
