@@ -1,1 +1,3 @@
 """fsjax.fit (placeholder for later issues)."""
+from .rigid import *  # noqa: F401,F403
+from .icp import *  # noqa: F401,F403
