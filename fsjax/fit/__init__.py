@@ -1,3 +1,4 @@
 """fsjax.fit (placeholder for later issues)."""
 from .rigid import *  # noqa: F401,F403
 from .icp import *  # noqa: F401,F403
+from .ransac3d import *  # noqa: F403
