@@ -6,6 +6,10 @@
     run a type-checked pipeline on an image file; prints the sort after each
     stage and a ``Feature`` result. A stage is ``name``, ``name:param=value,...``
     (named parameters) or ``name@a[,b]`` (knob values in [0, 1]).
+``fsjax evolve --problem NAME [--gens G] [--pop P] [--seeds S] --out DIR``
+    search a pipeline for a synthetic problem (denoise, binarize, edges, count):
+    baselines first, then the GA per seed; writes ``DIR/champion.json`` (by op
+    names and knobs), ``DIR/baselines.md`` and ``DIR/log.csv``.
 ``fsjax tour --out DIR [--quick]``
     the library's main job: a scored tour of what fsjax measures; writes
     ``DIR/report.md`` and figures.
@@ -109,6 +113,28 @@ def _summary(y: Any) -> str:
     return ""
 
 
+def _cmd_evolve(args: argparse.Namespace) -> int:
+    from .evolve.problems import make_problem
+    from .evolve.runs import run_problem, write_run
+    from .evolve.search import GAConfig
+
+    vocab = [v.strip() for v in args.vocabulary.split(",") if v.strip()] if args.vocabulary else None
+    problem = make_problem(args.problem, size=(args.size, args.size), n_train=args.n_train,
+                           n_holdout=args.n_holdout, n_locked=args.n_train + args.n_holdout, n_stages=args.stages)
+    cfg = GAConfig(pop=args.pop, gens=args.gens)
+    report = run_problem(problem, seeds=range(args.seeds), cfg=cfg, vocabulary=vocab, progress=not args.quiet)
+    paths = write_run(report, args.out)
+    print(f"skeleton {report.skeleton}; compile {report.compile_seconds:.1f} s, total {report.seconds:.1f} s")
+    print(report.table())
+    best = report.best_seed().champion
+    print("champion (best seed by train): " + " -> ".join(
+        st["op"] + (f"(a={st['a']:.3f}" + (f", b={st['b']:.3f})" if st["b"] is not None else ")")
+                    if st["a"] is not None else "") for st in best["stages"]))
+    for k, p in paths.items():
+        print(f"wrote {p} ({k})")
+    return 0
+
+
 def _cmd_tour(args: argparse.Namespace) -> int:
     from .tour import run_tour
 
@@ -133,6 +159,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("-o", "--output")
     p.add_argument("--color", action="store_true", help="read the file as Color (default: grey)")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("evolve", help="evolve a pipeline for a synthetic problem; write champion, baselines, log")
+    p.add_argument("--problem", required=True, choices=["denoise", "binarize", "edges", "count"])
+    p.add_argument("--gens", type=int, default=40)
+    p.add_argument("--pop", type=int, default=64)
+    p.add_argument("--seeds", type=int, default=3, help="independent runs (seeds 0..S-1)")
+    p.add_argument("--stages", type=int, default=6, help="stages of the search skeleton")
+    p.add_argument("--size", type=int, default=64, help="image side in pixels")
+    p.add_argument("--n-train", type=int, default=16)
+    p.add_argument("--n-holdout", type=int, default=8)
+    p.add_argument("--vocabulary", help="comma-separated op names (default: fsjax.evolve.DEFAULT_VOCABULARY)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_evolve)
 
     p = sub.add_parser("tour", help="run the scored tour and write DIR/report.md")
     p.add_argument("--out", required=True)
