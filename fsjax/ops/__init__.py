@@ -28,3 +28,4 @@ from ._segment import *  # noqa: F403
 from ._skeleton import *  # noqa: F403
 from ._threshold import *  # noqa: F403
 from ._threshold_local import *  # noqa: F403
+from ._tomography import *  # noqa: F403

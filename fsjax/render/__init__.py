@@ -4,3 +4,4 @@ Submodules add their public names here with one ``from .<module> import *`` line
 """
 
 from .camera import *  # noqa: F403
+from .volume import *  # noqa: F403

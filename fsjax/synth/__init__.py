@@ -16,6 +16,9 @@ from ._inspection import shaft as shaft
 from ._inspection import step_edge as step_edge
 from ._inspection import tilted_edge as tilted_edge
 from ._particles import particle_scene as particle_scene
+from ._phantom import CT_MATERIALS as CT_MATERIALS
+from ._phantom import ct_phantom as ct_phantom
+from ._phantom import ct_sinogram as ct_sinogram
 from ._pool import register_pool as register_pool
 from ._pool import standard_input as standard_input
 from ._pool import standard_scene as standard_scene
