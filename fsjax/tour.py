@@ -349,10 +349,16 @@ SECTIONS: list[Callable[[Path, bool], Section]] = [
 
 def all_sections() -> list[Callable[[Path, bool], Section]]:
     """Every tour section: the 2-D basics here, then inspection and metrology scenes."""
-    from .tour_inspection import SECTIONS as inspection
-    from .tour_metrology import SECTIONS as metrology
+    import importlib
 
-    return [*SECTIONS, *inspection, *metrology]
+    out = list(SECTIONS)
+    for name in _TOUR_MODULES:
+        out += importlib.import_module(f"fsjax.{name}").SECTIONS
+    return out
+
+
+#: tour modules after the 2-D basics, in report order
+_TOUR_MODULES = ("tour_inspection", "tour_metrology", "tour_tomography")
 
 
 def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=print) -> list[Section]:
