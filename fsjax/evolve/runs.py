@@ -108,7 +108,7 @@ def _finite(c: Candidate | None) -> bool:
     return c is not None and all(math.isfinite(v) for v in (c.train, c.holdout, c.locked))
 
 
-def run_problem(problem: Problem, *, seeds: Sequence[int] = (0,), cfg: GAConfig = GAConfig(),
+def run_problem(problem: Problem, *, seeds: Sequence[int] = (0,), cfg: GAConfig | None = None,
                 vocabulary: Sequence[str] | None = None, refine_steps: int = 30, progress: bool = True,
                 dtype: Any = np.float32, devices: list | None = None) -> RunReport:
     """Baselines, then GA + random search + refinement for each seed; see the module docstring.
@@ -127,6 +127,7 @@ def run_problem(problem: Problem, *, seeds: Sequence[int] = (0,), cfg: GAConfig 
       ValueError: an empty stage vocabulary (before anything runs).
       BaselineMissingError: the problem has no hand pipeline, or a baseline is not finite.
     """
+    cfg = GAConfig() if cfg is None else cfg
     t_start = time.perf_counter()
     seeds = list(seeds)
     if not seeds:

@@ -175,7 +175,7 @@ def _progress(total: int, desc: str, enabled: bool):
     return tqdm(total=total, desc=desc, leave=False)
 
 
-def evolve(key: Any, problem: Problem, sk: Skeleton, ev: Evaluator, cfg: GAConfig = GAConfig(), *,
+def evolve(key: Any, problem: Problem, sk: Skeleton, ev: Evaluator, cfg: GAConfig | None = None, *,
            progress: bool = True, dtype: Any = np.float32) -> SearchResult:
     """Run the GA on ``problem``'s train split; track the held-out split in the log only.
 
@@ -190,6 +190,7 @@ def evolve(key: Any, problem: Problem, sk: Skeleton, ev: Evaluator, cfg: GAConfi
     Returns:
       :class:`SearchResult` with the best genome by train fitness over the whole run.
     """
+    cfg = GAConfig() if cfg is None else cfg
     if ev.sk != sk:
         raise ValueError("evolve: the evaluator was built for another skeleton")
     rng = numpy_rng(key)
