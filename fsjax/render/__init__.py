@@ -6,3 +6,5 @@ Submodules add their public names here with one ``from .<module> import *`` line
 from .camera import *  # noqa: F403
 from .volume import *  # noqa: F403
 from .raster import *  # noqa: F403
+from .sdf import *  # noqa: F403
+from .tonemap import *  # noqa: F403
