@@ -9,7 +9,10 @@ Writes, under the repository root:
   single-input ops that can follow it ("Connects to");
 * ``docs/ops/INDEX.md`` -- families -> ops, with summaries and links;
 * ``docs/OP_CATALOG.md`` -- one line per op: name, family, signature, knobs,
-  summary.
+  summary;
+* ``docs/api/<module>.md`` and ``docs/api/INDEX.md`` -- the public functions and
+  classes (``__all__``) of the modules under :data:`API_ROOTS` (cameras,
+  renderers, fits, evolution, 3-D I/O), with their docstrings.
 
 The output is a pure function of the registry: sorted, no timestamps, no
 machine paths, no object reprs with addresses. Usage::
@@ -17,7 +20,7 @@ machine paths, no object reprs with addresses. Usage::
     python tools/gen_docs.py            # (re)write the pages, remove stale ones
     python tools/gen_docs.py --check    # exit 1 listing drifted/missing/stale files
 
-Everything under ``docs/ops/`` is generated: a ``.md`` file there that the
+Everything under ``docs/ops/`` and ``docs/api/`` is generated: a ``.md`` file there that the
 registry does not produce (a page for an op that no longer exists) is stale.
 """
 
@@ -38,6 +41,11 @@ if str(REPO) not in sys.path:  # `python tools/gen_docs.py` from a checkout
     sys.path.insert(0, str(REPO))
 
 OPS_DIR = "docs/ops"
+API_DIR = "docs/api"
+API_INDEX = "docs/api/INDEX.md"
+#: packages and modules whose public functions and classes get an API page (the
+#: library beyond registered ops: cameras, renderers, fits, evolution, 3-D I/O)
+API_ROOTS = ("fsjax.render", "fsjax.fit", "fsjax.evolve", "fsjax.io3d", "fsjax.io_splat", "fsjax.data")
 INDEX = "docs/ops/INDEX.md"
 CATALOG = "docs/OP_CATALOG.md"
 CONNECT_CAP = 30
@@ -402,6 +410,83 @@ def catalog_page(ops: Sequence[Any]) -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
+def api_modules() -> list[Any]:
+    """Every module under :data:`API_ROOTS` that exists, with an ``__all__``, sorted by name."""
+    import importlib
+    import pkgutil
+
+    mods = {}
+    for root in API_ROOTS:
+        try:
+            m = importlib.import_module(root)
+        except ModuleNotFoundError as e:
+            if e.name == root:
+                continue
+            raise
+        todo = [m]
+        if hasattr(m, "__path__"):
+            for info in pkgutil.walk_packages(m.__path__, prefix=root + "."):
+                if info.name.rsplit(".", 1)[-1].startswith("_") or ".viewer" in info.name:
+                    continue
+                todo.append(importlib.import_module(info.name))
+        for mod in todo:
+            if getattr(mod, "__all__", None) and not hasattr(mod, "__path__"):
+                mods[mod.__name__] = mod
+    return [mods[k] for k in sorted(mods)]
+
+
+def _api_members(mod: Any) -> list[tuple[str, Any]]:
+    out = []
+    for name in sorted(mod.__all__):
+        obj = getattr(mod, name, None)
+        if (inspect.isfunction(obj) or inspect.isclass(obj)) and getattr(obj, "__module__", "") == mod.__name__:
+            out.append((name, obj))
+    return out
+
+
+def _api_signature(name: str, obj: Any) -> str:
+    try:
+        sig = str(inspect.signature(obj))
+    except (TypeError, ValueError):
+        sig = "(...)"
+    sig = _ADDRESS.sub("", sig)
+    return f"{name}{sig}"
+
+
+def api_page(mod: Any) -> str:
+    """One module's API page: its docstring, then each public function/class with its docstring."""
+    lines = [BANNER, "", f"# `{mod.__name__}`", ""]
+    doc = inspect.getdoc(mod) or ""
+    lines += [_ROLE.sub(r"`\1`", doc), ""] if doc else []
+    lines += [f"Source: `{source_path(mod.__name__)}`", ""]
+    for name, obj in _api_members(mod):
+        kind = "class" if inspect.isclass(obj) else "function"
+        lines += [f"## `{name}` ({kind})", "", "```python", _api_signature(name, obj), "```", ""]
+        d = inspect.getdoc(obj) or ""
+        if d:
+            summary = inspect.cleandoc(d).split("\n\n", 1)[0]
+            lines += [_ROLE.sub(r"`\1`", summary.replace("\n", " ")), ""]
+            lines += docstring_markdown(d) + [""]
+        else:
+            lines += ["*(no docstring)*", ""]
+    while lines and not lines[-1].strip():
+        lines.pop()
+    return "\n".join(lines) + "\n"
+
+
+def api_index(mods: Sequence[Any]) -> str:
+    lines = [BANNER, "", "# fsjax API beyond the registered ops", "",
+             "Cameras, renderers, fits (ICP, RANSAC, calibration, bundle adjustment, splat training),",
+             "evolution and 3-D I/O: plain typed functions that return result records. Registered ops",
+             "are in [the op index](../ops/INDEX.md).", "", "| module | summary | public names |", "|---|---|---|"]
+    for m in mods:
+        summ = (inspect.getdoc(m) or "").split("\n\n", 1)[0].replace("\n", " ")
+        names = ", ".join(f"`{n}`" for n, _ in _api_members(m))
+        summ = _cell(_ROLE.sub(r"`\1`", summ))
+        lines.append(f"| [`{m.__name__}`]({m.__name__}.md) | {summ} | {names} |")
+    return "\n".join(lines) + "\n"
+
+
 def render_all(ops: Sequence[Any] | None = None) -> dict[str, str]:
     """Every generated file: repository-relative POSIX path -> content."""
     if ops is None:
@@ -412,6 +497,10 @@ def render_all(ops: Sequence[Any] | None = None) -> dict[str, str]:
     files = {page_path(s): op_page(s, ops) for s in ops}
     files[INDEX] = index_page(ops)
     files[CATALOG] = catalog_page(ops)
+    mods = api_modules()
+    for m in mods:
+        files[f"{API_DIR}/{m.__name__}.md"] = api_page(m)
+    files[API_INDEX] = api_index(mods)
     return dict(sorted(files.items()))
 
 
@@ -430,9 +519,10 @@ class Result:
 def _existing_generated(root: Path) -> list[str]:
     """Repository-relative paths of the Markdown files now under ``docs/ops`` (and the catalogue)."""
     found = []
-    ops_dir = root / OPS_DIR
-    if ops_dir.is_dir():
-        found += [p.relative_to(root).as_posix() for p in ops_dir.rglob("*.md") if p.is_file()]
+    for d in (OPS_DIR, API_DIR):
+        ops_dir = root / d
+        if ops_dir.is_dir():
+            found += [p.relative_to(root).as_posix() for p in ops_dir.rglob("*.md") if p.is_file()]
     if (root / CATALOG).is_file():
         found.append(CATALOG)
     return sorted(found)
