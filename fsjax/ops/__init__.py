@@ -24,6 +24,7 @@ from ._morphology import *  # noqa: F403
 from ._point import *  # noqa: F403
 from ._points import *  # noqa: F403
 from ._points_curvature import *  # noqa: F403
+from ._points_search import *  # noqa: F403
 from ._segment import *  # noqa: F403
 from ._skeleton import *  # noqa: F403
 from ._threshold import *  # noqa: F403

@@ -1,0 +1,203 @@
+"""Neighbour search (knn, radius_search) against scipy.spatial.cKDTree: exact sets and distances."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from fsjax.data import mesh_arrays
+from fsjax.ops import knn, radius_search
+
+
+RTOL = 8 * np.finfo(np.float64).eps
+
+
+def _d2(ref, q, idx):
+    """Squared distances in the same summation order as fsjax (x, y, z)."""
+    p = ref[np.clip(idx, 0, None)]
+    d = p - q[:, None, :]
+    out = (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
+    return np.where(idx >= 0, out, np.inf)
+
+
+def _check_knn(ref, q, k, idx, d2, valid=None):
+    """Exactness vs cKDTree. Returns the number of query rows compared."""
+    idx, d2 = np.asarray(idx), np.asarray(d2)
+    sel = np.arange(len(ref)) if valid is None else np.flatnonzero(valid)
+    tree = cKDTree(ref[sel])
+    kk = min(k, len(sel))
+    dt, it = tree.query(q, kk)
+    it = sel[np.asarray(it).reshape(len(q), kk)]
+    assert idx.shape == (len(q), k) and idx.dtype == np.int32
+    # our distances are the true distances of the returned indices (to rounding: XLA may fuse
+    # multiply-adds), ascending
+    np.testing.assert_allclose(d2, _d2(ref, q, idx), rtol=RTOL, atol=0)
+    assert np.all(np.diff(d2[:, :kk], axis=1) >= 0)
+    # missing neighbours when fewer than k valid points
+    assert np.all(idx[:, kk:] == -1) and np.all(np.isinf(d2[:, kk:]))
+    assert np.all(idx[:, :kk] >= 0)
+    # the multiset of distances equals cKDTree's (recomputed exactly from its indices)
+    np.testing.assert_allclose(d2[:, :kk], np.sort(_d2(ref, q, it), axis=1), rtol=RTOL, atol=0)
+    np.testing.assert_allclose(d2[:, :kk], np.asarray(dt).reshape(len(q), kk) ** 2, rtol=1e-12, atol=1e-300)
+    # identical sets up to ties at the k-th distance
+    kth = _d2(ref, q, idx)[:, kk - 1:kk] * (1 - RTOL)
+    for j in range(len(q)):
+        a = set(idx[j, :kk][_d2(ref, q[j:j + 1], idx[j:j + 1, :kk])[0] < kth[j]].tolist())
+        b = set(it[j][_d2(ref, q[j:j + 1], it[j:j + 1])[0] < kth[j]].tolist())
+        assert a == b
+    if valid is not None:
+        assert np.all(np.asarray(valid)[idx[idx >= 0]])
+    return len(q)
+
+
+def _check_radius(ref, q, r, cap, out, valid=None):
+    idx, d2, cnt, trunc = (np.asarray(a) for a in out)
+    sel = np.arange(len(ref)) if valid is None else np.flatnonzero(valid)
+    lists = cKDTree(ref[sel]).query_ball_point(q, r)
+    true_cnt = np.array([len(x) for x in lists])
+    np.testing.assert_array_equal(cnt, true_cnt)
+    np.testing.assert_array_equal(trunc, true_cnt > cap)
+    np.testing.assert_allclose(d2, _d2(ref, q, idx), rtol=RTOL, atol=0)
+    for j in range(len(q)):
+        mine = idx[j][idx[j] >= 0]
+        assert len(mine) == min(cap, true_cnt[j])
+        truth = sel[np.asarray(lists[j], dtype=int)]
+        if true_cnt[j] <= cap:
+            assert set(mine.tolist()) == set(truth.tolist())
+        else:  # the nearest `cap` of the true set
+            td = np.sort(_d2(ref, q[j:j + 1], truth[None])[0])
+            np.testing.assert_allclose(d2[j, : len(mine)], td[:cap], rtol=RTOL, atol=0)
+            assert set(mine.tolist()) <= set(truth.tolist())
+        assert np.all(np.diff(d2[j, : len(mine)]) >= 0)
+    return int(true_cnt.max())
+
+
+def _clouds():
+    rng = np.random.default_rng(7)
+    uni = rng.random((3000, 3))
+    # ties and duplicates: a coarse integer lattice, every point twice
+    lat = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0), np.arange(15.0), indexing="ij"),
+                   -1).reshape(-1, 3)
+    dup = np.concatenate([lat, lat])[rng.permutation(2 * len(lat))]
+    # clustered: 10 tight Gaussian blobs in a big box plus sparse background
+    centres = rng.random((10, 3)) * 20
+    clus = np.concatenate([centres[rng.integers(0, 10, 2800)] + 0.05 * rng.normal(size=(2800, 3)),
+                           rng.random((200, 3)) * 20])
+    # planar: z = 0 exactly (degenerate extent along z)
+    plane = np.concatenate([rng.random((3000, 2)), np.zeros((3000, 1))], axis=1)
+    # bunny vertices (real scan)
+    v, _ = mesh_arrays("bunny")
+    bun = v[rng.choice(len(v), 3000, replace=False)]
+    return {"uniform": uni, "lattice_dup": dup, "clustered": clus, "planar": plane, "bunny": bun}
+
+
+@pytest.mark.parametrize("name", ["uniform", "lattice_dup", "clustered", "planar", "bunny"])
+def test_knn_exact_vs_ckdtree(name):
+    ref = _clouds()[name]
+    rng = np.random.default_rng(1)
+    lo, hi = ref.min(0), ref.max(0)
+    # queries: half on reference points (self-neighbours, ties), half random in the box
+    q = np.concatenate([ref[rng.choice(len(ref), 300)], lo + (hi - lo) * rng.random((300, 3))])
+    if name == "lattice_dup":
+        q[:50] = np.round(q[:50]) + 0.5  # equidistant to 8 lattice points x2 duplicates
+    rows = 0
+    for k in (1, 8, 32):
+        for method in ("grid", "brute"):
+            idx, d2 = knn(ref, q, k, method=method)
+            rows += _check_knn(ref, q, k, idx, d2)
+    print(f"knn {name}: {len(ref)} refs, {rows} query rows identical to cKDTree (k = 1, 8, 32; grid and brute)")
+
+
+@pytest.mark.parametrize("name", ["uniform", "lattice_dup", "clustered", "planar", "bunny"])
+def test_radius_exact_vs_ckdtree(name):
+    ref = _clouds()[name]
+    rng = np.random.default_rng(2)
+    q = np.concatenate([ref[rng.choice(len(ref), 200)], ref.min(0) + np.ptp(ref, 0) * rng.random((200, 3))])
+    scale = float(np.median(cKDTree(ref).query(ref[:200], 9)[0][:, -1]))
+    for r in (0.5 * scale, 2.0 * scale, 1.0 if name == "lattice_dup" else 3 * scale):
+        for method in ("grid", "brute"):
+            mx = _check_radius(ref, q, r, 16, radius_search(ref, q, r, 16, method=method))
+    print(f"radius_search {name}: counts and sets identical to cKDTree (max count {mx}, capacity 16)")
+
+
+def test_knn_valid_mask_and_too_few_points():
+    rng = np.random.default_rng(3)
+    ref = rng.random((400, 3))
+    valid = rng.random(400) < 0.5
+    ref_bad = ref.copy()
+    ref_bad[~valid] = np.nan  # invalid slots may hold garbage
+    q = rng.random((100, 3))
+    for method in ("grid", "brute"):
+        idx, d2 = knn(ref_bad, q, 16, ref_valid=jnp.asarray(valid), method=method)
+        _check_knn(ref, q, 16, idx, d2, valid=valid)
+    # fewer valid points than k
+    few = np.zeros(400, bool)
+    few[[3, 50, 77]] = True
+    for method in ("grid", "brute"):
+        idx, d2 = knn(ref, q, 8, ref_valid=jnp.asarray(few), method=method)
+        _check_knn(ref, q, 8, idx, d2, valid=few)
+        idx, d2 = knn(ref, q, 4, ref_valid=jnp.zeros(400, bool), method=method)
+        assert np.all(np.asarray(idx) == -1) and np.all(np.isinf(np.asarray(d2)))
+
+
+def test_knn_far_queries_and_float32():
+    rng = np.random.default_rng(4)
+    ref = rng.random((3000, 3))
+    q = np.concatenate([rng.random((100, 3)), 50 + rng.random((20, 3)), -(1e6) * rng.random((5, 3))])
+    idx, d2 = knn(ref, q, 8, method="grid")
+    _check_knn(ref, q, 8, idx, d2)
+    ref32, q32 = ref.astype(np.float32), q[:100].astype(np.float32)
+    idx, d2 = knn(ref32, q32, 8, method="grid")
+    assert np.asarray(d2).dtype == np.float32
+    dt, it = cKDTree(ref32.astype(np.float64)).query(q32.astype(np.float64), 8)
+    # float32: same sets except where two distances agree to float32 rounding
+    same = np.mean([set(a) == set(b) for a, b in zip(np.asarray(idx), it)])
+    err = np.max(np.abs(np.sqrt(np.asarray(d2, np.float64)) - dt))
+    print(f"knn float32 vs cKDTree(float64): identical sets {same:.4f}, max |d - d_ref| = {err:.1e}")
+    assert same >= 0.99 and err < 1e-6
+
+
+def test_jit_vmap():
+    rng = np.random.default_rng(5)
+    refs = jnp.asarray(rng.random((2, 3000, 3)))
+    qs = jnp.asarray(rng.random((2, 200, 3)))
+    f = jax.jit(jax.vmap(lambda r, q: knn(r, q, 8, method="grid")))
+    idx, d2 = f(refs, qs)
+    for b in range(2):
+        _check_knn(np.asarray(refs[b]), np.asarray(qs[b]), 8, idx[b], d2[b])
+    g = jax.jit(lambda r, q, rad: radius_search(r, q, rad, 8, method="grid"))
+    out = g(refs[0], qs[0], 0.08)  # traced radius
+    _check_radius(np.asarray(refs[0]), np.asarray(qs[0]), 0.08, 8, out)
+
+
+def test_radius_truncation_flag():
+    ref = np.random.default_rng(6).random((3000, 3))
+    q = ref[:50]
+    out = radius_search(ref, q, 0.3, 4, method="grid")
+    mx = _check_radius(ref, q, 0.3, 4, out)
+    assert bool(np.all(np.asarray(out[3])))  # > 4 neighbours everywhere at r = 0.3
+    print(f"radius_search overflow: all 50 queries truncated at capacity 4 (max true count {mx})")
+
+
+def test_bad_input():
+    ref = np.zeros((10, 3))
+    with pytest.raises(ValueError, match="knn: argument 'k'"):
+        knn(ref, ref, 0)
+    with pytest.raises(ValueError, match="knn: argument 'k'"):
+        knn(ref, ref, 33)
+    with pytest.raises(TypeError, match="knn: argument 'k'"):
+        knn(ref, ref, 2.0)
+    with pytest.raises(ValueError, match="knn: argument 'query_xyz'"):
+        knn(ref, np.zeros((4, 2)), 2)
+    with pytest.raises(ValueError, match="knn: argument 'ref_xyz'.*NaN"):
+        knn(np.full((4, 3), np.nan), ref, 2)
+    with pytest.raises(ValueError, match="knn: argument 'method'"):
+        knn(ref, ref, 2, method="kdtree")
+    with pytest.raises(ValueError, match="radius_search: argument 'radius'"):
+        radius_search(ref, ref, -1.0, 4)
+    with pytest.raises(ValueError, match="radius_search: argument 'capacity'"):
+        radius_search(ref, ref, 1.0, 0)
+    # empty clouds
+    idx, d2 = knn(np.zeros((0, 3)), ref, 3)
+    assert idx.shape == (10, 3) and np.all(np.asarray(idx) == -1)
