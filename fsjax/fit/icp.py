@@ -29,9 +29,9 @@ The record's ``rmse`` is the RMS point distance of the final (trimmed) correspon
 increment converged but whose ``inlier_fraction`` is below ``min_inlier_fraction`` reports
 ``converged=False`` with reason 5: a wrong local minimum is flagged, not hidden.
 
-Failing closed: empty or all-invalid clouds, fewer valid points than the model needs (3 for
-point-to-point, 6 otherwise), non-finite coordinates among the valid points (reason 4), too
-few correspondences within the distance gate (reason 2) or singular normal equations / collinear
+Failing closed: empty or all-invalid clouds (reason 4), fewer valid points than the model needs (3 for
+point-to-point, 6 otherwise; reason 2), non-finite coordinates among the valid points (reason 4),
+too few correspondences within the distance gate (reason 2) or singular normal equations / collinear
 pairs (reason 3) give NaN pose, NaN rmse and ``converged=False``.
 
 Neighbour search: :func:`knn` here is an exact chunked brute force (memory O(chunk x N)); it has
@@ -288,6 +288,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
               & jnp.all(jnp.isfinite(r0)) & jnp.all(jnp.isfinite(t0)))
     ns, nt = jnp.sum(sv), jnp.sum(tv)
     input_ok = finite & (ns >= min_pts) & (nt >= min_pts)
+    input_reason = jnp.where(~finite | (ns == 0) | (nt == 0), INVALID, jnp.where(input_ok, OK, TOO_FEW))
     src = jnp.where(sv[:, None] & finite, src, 0.0)
     tgt = jnp.where(tv[:, None] & finite, tgt, 0.0)
     r0 = jnp.where(finite, r0, jnp.eye(3, dtype=dtype))
@@ -367,7 +368,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         return (it + 1, jnp.where(keep, r2, r), jnp.where(keep, t2, t), small, bad.astype(jnp.int32),
                 n_ok.astype(jnp.int32))
 
-    init = (jnp.int32(0), r0, t0, ~input_ok, jnp.where(input_ok, OK, INVALID).astype(jnp.int32), jnp.int32(0))
+    init = (jnp.int32(0), r0, t0, ~input_ok, input_reason.astype(jnp.int32), jnp.int32(0))
     it, r, t, done, bad, n_ok = jax.lax.while_loop(cond, body, init)
     # final evaluation at the returned pose
     p, j, d2, ok = correspond(r, t)
@@ -395,7 +396,7 @@ def icp(
     max_correspondence_distance: float = float("inf"),
     overlap: float = 1.0,
     inlier_distance: float | None = None,
-    min_inlier_fraction: float = 0.5,
+    min_inlier_fraction: float | None = None,
     max_iterations: int = 50,
     rot_tol: float = 1e-7,
     trans_tol: float = 1e-7,
@@ -419,7 +420,9 @@ def icp(
         inlier_distance: distance defining ``inlier_fraction`` (default: 3 x the target's median
             nearest-neighbour spacing).
         min_inlier_fraction: below this fitness a converged run reports ``converged=False``
-            (reason 5). 0 disables the check.
+            (reason 5); default ``0.9 * overlap``. 0 disables the check. On the bunny (600
+            points, full overlap) every correct alignment had fitness 1.0 and every wrong local
+            minimum at most 0.83, from any initial rotation.
         max_iterations: outer iteration cap (static); hitting it is reported (reason 1).
         rot_tol: convergence: rotation increment in radians.
         trans_tol: convergence: increment of the moved centroid, relative to the target's RMS radius.
@@ -448,6 +451,8 @@ def icp(
         _check_static_pos_int(v, nm, fn)
     _check_num(overlap, "overlap", fn, 0.0, 1.0, lo_open=True)
     _check_num(max_correspondence_distance, "max_correspondence_distance", fn, 0.0, float("inf"), lo_open=True)
+    if min_inlier_fraction is None:
+        min_inlier_fraction = 0.9 * overlap
     _check_num(min_inlier_fraction, "min_inlier_fraction", fn, 0.0, 1.0)
     if inlier_distance is not None:
         _check_num(inlier_distance, "inlier_distance", fn, 0.0, float("inf"), lo_open=True)

@@ -1,0 +1,119 @@
+"""fsjax.fit.icp: bunny self-registration, basin of convergence, failing closed (issue 4, items 1 and 3)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fsjax
+from fsjax.fit import icp, icp_multistart, rotation_error_deg, rotation_from_axis_angle, rotation_grid
+from fsjax.fit.icp import _bunny_points, knn
+from fsjax.tour_registration import measure_basin, measure_self_registration
+
+
+def test_knn_matches_ckdtree():
+    from scipy.spatial import cKDTree
+
+    ref, qry = _bunny_points(700, 1), _bunny_points(300, 2)
+    valid = np.arange(700) % 5 != 0
+    idx, d2 = knn(jnp.asarray(ref), jnp.asarray(qry), 8, ref_valid=jnp.asarray(valid))
+    dd, ii = cKDTree(ref[valid]).query(qry, 8)
+    same = np.mean(np.flatnonzero(valid)[ii] == np.asarray(idx))
+    print(f"brute-force knn (k=8, 20 % invalid refs) vs cKDTree: index agreement {same:.4f}, "
+          f"max |d - d_ref| {np.abs(np.sqrt(np.asarray(d2)) - dd).max():.1e}")
+    assert same == 1.0 and np.allclose(np.sqrt(np.asarray(d2)), dd, atol=1e-12)
+
+
+def test_bunny_self_registration():
+    r = measure_self_registration(1000, 1e-4)
+    print(f"bunny self-registration (1000 pts, 30 deg + (20,-10,15) mm + 0.1 mm noise): null (no ICP) "
+          f"{r['null_error_deg']:.2f} deg")
+    for m in ("point_to_point", "point_to_plane", "gicp"):
+        print(f"  {m}: rotation error {r[m]['error_deg']:.4f} deg, translation error {1e3 * r[m]['t_error']:.4f} mm, "
+              f"{r[m]['iterations']} iterations, rmse {1e3 * r[m]['rmse']:.3f} mm")
+        assert r[m]["converged"] and r[m]["reason"] == 0
+        assert r[m]["error_deg"] <= 0.03 < r["null_error_deg"]
+        assert r[m]["t_error"] < 1e-4
+    # point-to-plane needs fewer iterations than point-to-point (quadratic vs linear convergence)
+    assert r["point_to_plane"]["iterations"] < r["point_to_point"]["iterations"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method,all_ok_to,none_from", [
+    ("point_to_point", 60, 90), ("point_to_plane", 60, 120), ("gicp", 60, 120), ("multistart", 180, None)])
+def test_basin_of_convergence(method, all_ok_to, none_from):
+    angles = (30, 60, 90, 120, 180)
+    b = measure_basin(method, angles_deg=angles, n_axes=4, n_points=500)
+    rates = dict(zip(angles, b["success_rate"], strict=True))
+    print(f"basin {method}: success " + ", ".join(f"{a:g} deg {s:.2f}" for a, s in rates.items())
+          + f"; reported converged {np.round(b['reported_rate'], 2).tolist()}; hidden failures {b['hidden']}")
+    assert all(s == 1.0 for a, s in rates.items() if a <= all_ok_to)
+    if none_from is not None:
+        assert all(s == 0.0 for a, s in rates.items() if a >= none_from)
+    # failure is reported: no run that missed by > 1 deg claims convergence
+    assert b["hidden"] == 0 and b["false_alarm"] == 0
+
+
+def test_multistart_vmaps_and_picks_best():
+    x = _bunny_points(400, 3)
+    c = x.mean(0)
+    r = np.asarray(rotation_from_axis_angle(jnp.array([1.0, -0.5, 0.2]), 150.0))
+    src = (x - c) @ r + c
+    ms = icp_multistart(jnp.asarray(src), jnp.asarray(x), rotation_grid(24))
+    single = icp(jnp.asarray(src), jnp.asarray(x))
+    e_ms = float(rotation_error_deg(ms.best.R, jnp.asarray(r)))
+    e_1 = float(rotation_error_deg(single.R, jnp.asarray(r)))
+    print(f"150 deg: multi-start (24 starts, one vmap) error {e_ms:.2e} deg from start {int(ms.index)} "
+          f"(converged {int(np.sum(np.asarray(ms.starts.converged)))}/24); single start {e_1:.1f} deg, "
+          f"converged={bool(single.converged)} ({single.message})")
+    assert ms.starts.R.shape == (24, 3, 3)
+    assert e_ms < 1e-3 and bool(ms.best.converged)
+    assert e_1 > 10 and not bool(single.converged)
+
+
+def test_trimmed_icp_partial_overlap():
+    x = _bunny_points(1200, 4)
+    keep_s = x[:, 0] <= np.quantile(x[:, 0], 0.75)
+    keep_t = x[:, 0] >= np.quantile(x[:, 0], 0.25)
+    r = np.asarray(rotation_from_axis_angle(jnp.array([0.0, 1.0, 0.3]), 10.0))
+    src = x[keep_s] @ r  # target = R src
+    out = {}
+    for ov in (1.0, 0.6):
+        res = icp(jnp.asarray(src), jnp.asarray(x[keep_t]), method="point_to_plane", overlap=ov)
+        out[ov] = (float(rotation_error_deg(res.R, jnp.asarray(r))), res)
+    print(f"partial overlap (2/3 of each cloud shared), 10 deg: plain ICP error {out[1.0][0]:.3f} deg "
+          f"(fitness {float(out[1.0][1].inlier_fraction):.2f}); trimmed (overlap 0.6) {out[0.6][0]:.4f} deg "
+          f"(fitness {float(out[0.6][1].inlier_fraction):.2f})")
+    assert out[0.6][0] < 0.05 and out[0.6][0] < out[1.0][0]
+    assert bool(out[0.6][1].converged)
+
+
+def test_bad_input_fails_closed():
+    x = jnp.asarray(_bunny_points(200, 5))
+    nan = np.asarray(x).copy()
+    nan[7, 1] = np.nan
+    invalid = fsjax.Points(x, valid=jnp.zeros(200, bool))
+    u, v = np.meshgrid(np.linspace(0, 1, 12), np.linspace(0, 1, 12))
+    plane = jnp.asarray(np.c_[u.ravel(), v.ravel(), np.zeros(144)])
+    cases = {
+        "all-invalid source": (icp(invalid, x), 4),
+        "NaN coordinate": (icp(jnp.asarray(nan), x), 4),
+        "2 points (p2p needs 3)": (icp(x[:2], x, method="point_to_point"), 2),
+        "5 points (p2plane needs 6)": (icp(x[:5], x), 2),
+        "no pair within gate": (icp(x + 1.0, x, max_correspondence_distance=1e-3), 2),
+        "plane on plane (p2plane)": (icp(plane + jnp.array([0.01, 0.02, 0.0]), plane), 3),
+    }
+    for name, (res, code) in cases.items():
+        print(f"{name}: reason {int(res.reason)} ({res.message}); R NaN: {bool(jnp.all(jnp.isnan(res.R)))}")
+        assert int(res.reason) == code and not bool(res.converged)
+        assert bool(jnp.all(jnp.isnan(res.R))) and bool(jnp.all(jnp.isnan(res.t)))
+    capped = icp(x @ np.asarray(rotation_from_axis_angle(jnp.array([0.0, 0.0, 1.0]), 20.0)), x,
+                 method="point_to_point", max_iterations=2)
+    print(f"max_iterations=2: reason {int(capped.reason)} ({capped.message}), iterations {int(capped.iterations)}")
+    assert int(capped.reason) == 1 and not bool(capped.converged) and int(capped.iterations) == 2
+    for kw, arg in [({"method": "p2q"}, "method"), ({"overlap": 0.0}, "overlap"), ({"max_iterations": 0}, "max_iterations")]:
+        with pytest.raises(ValueError, match=f"icp\\({arg}"):
+            icp(x, x, **kw)
+    with pytest.raises(ValueError, match="icp\\(source"):
+        icp(jnp.zeros((0, 3)), x)
