@@ -4,6 +4,7 @@ Submodules add their public names here with one ``from .<module> import *`` line
 """
 
 from .camera import *  # noqa: F403
+from .splat import *  # noqa: F403
 from .volume import *  # noqa: F403
 from .raster import *  # noqa: F403
 from .sdf import *  # noqa: F403
