@@ -9,3 +9,5 @@ from .volume import *  # noqa: F403
 from .raster import *  # noqa: F403
 from .sdf import *  # noqa: F403
 from .tonemap import *  # noqa: F403
+from .raycast import *  # noqa: F403
+from .shading import *  # noqa: F403

@@ -173,18 +173,24 @@ def _clipped_bbox(P, K, near):
     return umin, umax, vmin, vmax, jnp.any(ok, axis=1)
 
 
-def _bin(umin, umax, vmin, vmax, usable, H, W, tile, capacity):
-    """Tile table ``(T, capacity)`` of face ids (-1 empty), exact per-tile counts and kept counts."""
+def _pixel_range(umin, umax, vmin, vmax):
+    """Conservative inclusive pixel range of a box (the per-pixel test is exact; a margin of one
+    pixel is harmless)."""
+    big = 1e9
+    return (jnp.floor(jnp.clip(umin, -big, big)) - 1, jnp.ceil(jnp.clip(umax, -big, big)) + 1,
+            jnp.floor(jnp.clip(vmin, -big, big)) - 1, jnp.ceil(jnp.clip(vmax, -big, big)) + 1)
+
+
+def _bin(c0, c1, r0, r1, usable, H, W, tile, capacity):
+    """Tile table ``(T, capacity)`` of face ids (-1 empty), exact per-tile counts and kept counts.
+
+    ``c0..c1`` and ``r0..r1`` are each triangle's inclusive column/row ranges (floats holding
+    integers) on an ``H x W`` grid cut into ``tile x tile`` tiles.
+    """
     ntx = -(-W // tile)
     nty = -(-H // tile)
     T = ntx * nty
-    F = umin.shape[0]
-    # Conservative pixel range (the per-pixel test is exact; a margin of one pixel is harmless).
-    big = 1e9
-    c0 = jnp.floor(jnp.clip(umin, -big, big)) - 1
-    c1 = jnp.ceil(jnp.clip(umax, -big, big)) + 1
-    r0 = jnp.floor(jnp.clip(vmin, -big, big)) - 1
-    r1 = jnp.ceil(jnp.clip(vmax, -big, big)) + 1
+    F = c0.shape[0]
     on = usable & (c1 >= 0) & (c0 <= W - 1) & (r1 >= 0) & (r0 <= H - 1)
     tx0 = (jnp.clip(c0, 0, W - 1) // tile).astype(jnp.int32)
     tx1 = (jnp.clip(c1, 0, W - 1) // tile).astype(jnp.int32)
@@ -312,7 +318,7 @@ def rasterize(mesh: Mesh, camera: Camera, *, tile: int = 16, capacity: int = 256
     P0 = jnp.where(usable[:, None, None], P, 1.0)
     umin, umax, vmin, vmax, vis = _clipped_bbox(P0, Ks, near)
     usable = usable & vis & jnp.isfinite(umin) & jnp.isfinite(umax) & jnp.isfinite(vmin) & jnp.isfinite(vmax)
-    table, count, kept, ntx, nty = _bin(umin, umax, vmin, vmax, usable, H, W, tile, capacity)
+    table, count, kept, ntx, nty = _bin(*_pixel_range(umin, umax, vmin, vmax), usable, H, W, tile, capacity)
     rays = _rays(Ks, nty * tile, ntx * tile, dtype)
     Cj = jnp.where(usable[:, None, None], Cj, 0.0)
     fid = _search(table, ntx, nty, tile, rays, Cj, jnp.where(usable[:, None], n, 0.0), det, near,
