@@ -2,3 +2,5 @@
 from .rigid import *  # noqa: F401,F403
 from .icp import *  # noqa: F401,F403
 from .ransac3d import *  # noqa: F403
+from .primitives3d import *  # noqa: F403
+from .frames import *  # noqa: F401,F403
