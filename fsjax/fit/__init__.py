@@ -3,3 +3,5 @@ from .rigid import *  # noqa: F401,F403
 from .icp import *  # noqa: F401,F403
 from .ransac3d import *  # noqa: F403
 from .frames import *  # noqa: F401,F403
+from .chessboard import *  # noqa: F401,F403
+from .calibrate import *  # noqa: F401,F403
