@@ -85,6 +85,7 @@ _SHARD_SCRIPT = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow  # a subprocess that compiles and runs two short GAs (about a minute of CPU)
 def test_sharded_population_equals_single_device():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
     root = Path(__file__).resolve().parents[2]
