@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from ..registry import OpSpec, get_op, list_ops
+from ..registry import OpSpec, get_op
 from ..types import Feature, Image, Region, Sort
 
 __all__ = [
@@ -148,7 +148,7 @@ class Skeleton:
         return " -> ".join(t.__name__ for t in self.sorts)
 
     def __str__(self) -> str:
-        return f"Skeleton({self.describe()}; vocabulary sizes {list(self.sizes)})"
+        return f"Skeleton({self.describe()}; vocabulary sizes {self.sizes.tolist()})"
 
 
 def skeleton(sorts: Sequence[type], vocabulary: Sequence[str] | None = None) -> Skeleton:

@@ -74,7 +74,8 @@ def render_page(reports: list[RunReport], settings: dict, seconds: float) -> str
            "the GA selects on the train split only, tracks the held-out split in its log, and the locked split is "
            "scored once at the end for every method. Scores are means over the images of a split (higher is "
            "better); evolved rows give the mean over seeds with min, max and standard deviation. \"seeds > hand\" "
-           "counts the seeds whose locked score beats the hand pipeline's.", ""]
+           "counts the seeds whose locked score beats the hand pipeline's. Throughput and compile time of the "
+           "population call: [benchmarks_evolve.md](benchmarks_evolve.md).", ""]
     verdicts = []
     for rep in reports:
         beats, text = _verdict(rep)
