@@ -20,9 +20,8 @@ Conventions:
 * Lengths (voxel edge, radius) are in the unit of ``xyz``. Batching is
   ``jax.vmap``.
 
-The neighbour search is :func:`fsjax.ops._points_search.knn` (uniform grid)
-when available, else a private chunked brute-force search with the same
-signature and the same exact results.
+The neighbour search is :func:`fsjax.ops.knn` (exact, sorted-cell grid;
+equal to ``scipy.spatial.cKDTree``), so ``k`` is at most 32.
 """
 
 from __future__ import annotations
@@ -35,6 +34,7 @@ from jax import lax
 from ..registry import LinKnob, LogKnob, register
 from ..types import Points
 from ._common import check_positive, check_range, check_static_int
+from ._points_search import knn as _search_knn
 
 __all__ = [
     "estimate_normals",
@@ -45,52 +45,10 @@ __all__ = [
 ]
 
 
+# neighbour search: the exact grid kNN of the points_search family
 # ---------------------------------------------------------------------------
-# neighbour search (private fallback; same signature as _points_search.knn)
-# ---------------------------------------------------------------------------
 
-
-def _knn_brute(ref_xyz, query_xyz, k: int, *, ref_valid=None, chunk: int = 256):
-    """Exact k nearest neighbours by chunked brute force.
-
-    Returns ``idx`` int32 ``(M, k)`` (``-1`` where fewer than ``k`` valid
-    reference points exist) and squared distances ``(M, k)`` (``inf`` there),
-    sorted by distance (ties: lower index first). Memory is ``O(chunk * N)``.
-    """
-    ref = jnp.asarray(ref_xyz)
-    q = jnp.asarray(query_xyz)
-    n, m = ref.shape[0], q.shape[0]
-    rv = jnp.all(jnp.isfinite(ref), axis=-1)
-    if ref_valid is not None:
-        rv = rv & jnp.asarray(ref_valid)
-    ref0 = jnp.where(rv[:, None], ref, 0.0)
-    ke = min(int(k), n)
-    c = max(1, min(chunk, m))
-    pad = (-m) % c
-    qp = jnp.pad(q, ((0, pad), (0, 0))).reshape(-1, c, 3)
-
-    def one(qc):
-        d2 = jnp.sum((qc[:, None, :] - ref0[None, :, :]) ** 2, axis=-1)
-        d2 = jnp.where(rv[None, :] & jnp.isfinite(d2), d2, jnp.inf)
-        neg, idx = lax.top_k(-d2, ke)
-        return idx.astype(jnp.int32), -neg
-
-    if ke == 0:
-        idx = jnp.full((m, 0), -1, jnp.int32)
-        d2 = jnp.zeros((m, 0), q.dtype)
-    else:
-        idx, d2 = lax.map(one, qp)
-        idx, d2 = idx.reshape(-1, ke)[:m], d2.reshape(-1, ke)[:m]
-    miss = ~jnp.isfinite(d2)
-    idx = jnp.where(miss, -1, idx)
-    d2 = jnp.where(miss, jnp.inf, d2)
-    if ke < k:
-        idx = jnp.pad(idx, ((0, 0), (0, k - ke)), constant_values=-1)
-        d2 = jnp.pad(d2, ((0, 0), (0, k - ke)), constant_values=jnp.inf)
-    return idx, d2
-
-
-knn = _knn_brute
+knn = _search_knn
 
 
 def _valid_mask(pts: Points):
@@ -153,7 +111,7 @@ def estimate_normals(pts: Points, /, *, k: int = 16, viewpoint: tuple[float, flo
 
     Args:
       pts: the cloud, ``xyz`` ``(N, 3)``.
-      k: neighbours per point (static int, 3..64; default 16).
+      k: neighbours per point (static int, 3..32; default 16).
       viewpoint: sensor position ``(x, y, z)`` in the unit of ``xyz``
         (default the origin, the usual sensor frame).
 
@@ -179,10 +137,10 @@ def estimate_normals(pts: Points, /, *, k: int = 16, viewpoint: tuple[float, flo
       [0.0, 0.0, -1.0]
     """
     op = "estimate_normals"
-    k = check_static_int(op, "k", k, lo=3, hi=64)
+    k = check_static_int(op, "k", k, lo=3, hi=32)
     vp = _check_viewpoint(op, viewpoint)
-    xyz = pts.xyz
     valid = _valid_mask(pts)
+    xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
     idx, _ = knn(xyz, xyz, k, ref_valid=valid)
     evals, evecs, _, cnt = pca_frames(xyz, valid, idx)
     n = evecs[..., 0]
@@ -293,7 +251,7 @@ def statistical_outlier_removal(pts: Points, /, *, k: int = 16, std_ratio: float
 
     Args:
       pts: the cloud.
-      k: neighbours per point, the point itself excluded (static int, 1..64; default 16).
+      k: neighbours per point, the point itself excluded (static int, 1..31; default 16).
       std_ratio: threshold in standard deviations (knob ``a``, 0.5..4; default 2).
 
     Returns:
@@ -317,11 +275,11 @@ def statistical_outlier_removal(pts: Points, /, *, k: int = 16, std_ratio: float
       (25, False)
     """
     op = "statistical_outlier_removal"
-    k = check_static_int(op, "k", k, lo=1, hi=64)
+    k = check_static_int(op, "k", k, lo=1, hi=31)
     check_range(op, "std_ratio", std_ratio, 0.0, None)
-    xyz = pts.xyz
-    dt = xyz.dtype
     valid = _valid_mask(pts)
+    xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
+    dt = xyz.dtype
     _, d2 = knn(xyz, xyz, k + 1, ref_valid=valid)
     d2 = d2[:, 1:]  # drop the point itself (distance 0)
     fin = jnp.isfinite(d2)
@@ -353,7 +311,7 @@ def radius_outlier_removal(pts: Points, /, *, radius: float = 0.1, min_neighbors
       pts: the cloud.
       radius: search radius in the unit of ``xyz`` (knob ``a``, log 0.02..1; default 0.1).
       min_neighbors: required neighbours, the point itself excluded (static
-        int, 1..63; default 4).
+        int, 1..31; default 4).
 
     Returns:
       ``pts`` with ``valid`` cleared on the outliers.
@@ -375,9 +333,9 @@ def radius_outlier_removal(pts: Points, /, *, radius: float = 0.1, min_neighbors
     """
     op = "radius_outlier_removal"
     check_positive(op, "radius", radius)
-    m = check_static_int(op, "min_neighbors", min_neighbors, lo=1, hi=63)
-    xyz = pts.xyz
+    m = check_static_int(op, "min_neighbors", min_neighbors, lo=1, hi=31)
     valid = _valid_mask(pts)
+    xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
     _, d2 = knn(xyz, xyz, m + 1, ref_valid=valid)
     r = jnp.asarray(radius, xyz.dtype)
     keep = valid & (d2[:, m] <= r * r)

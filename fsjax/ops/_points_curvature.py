@@ -151,7 +151,7 @@ def curvature(pts: Points, /, *, k: int = 24) -> PointValues:
 
     Args:
       pts: the cloud (its ``normals``, when present, only fix the outward side).
-      k: neighbours per fit (static int, 6..64; default 24). More neighbours
+      k: neighbours per fit (static int, 6..32; default 24). More neighbours
         average noise but add the quartic bias of a quadric on a patch of
         radius ``rho``: about ``rho^2 / (4 R^2)`` relative on a sphere.
 
@@ -177,9 +177,9 @@ def curvature(pts: Points, /, *, k: int = 24) -> PointValues:
       (0.5, 1.0)
     """
     op = "curvature"
-    k = check_static_int(op, "k", k, lo=6, hi=64)
-    xyz = pts.xyz
+    k = check_static_int(op, "k", k, lo=6, hi=32)
     valid = _valid_mask(pts)
+    xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
     idx, _ = knn(xyz, xyz, k, ref_valid=valid)
     if pts.normals is not None:
         outward = jnp.where(jnp.isfinite(pts.normals), pts.normals, 0.0)
@@ -187,7 +187,7 @@ def curvature(pts: Points, /, *, k: int = 24) -> PointValues:
         nv = jnp.maximum(jnp.sum(valid), 1).astype(xyz.dtype)
         cen = jnp.sum(jnp.where(valid[:, None], xyz, 0.0), axis=0) / nv
         outward = xyz - cen
-    k1, k2, ok = quadric_curvatures(jnp.where(valid[:, None], xyz, 0.0), valid, idx, outward)
+    k1, k2, ok = quadric_curvatures(xyz, valid, idx, outward)
     H = 0.5 * (k1 + k2)
     K = k1 * k2
     si = (2.0 / jnp.pi) * jnp.arctan2(k1 + k2, k1 - k2)

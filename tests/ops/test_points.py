@@ -24,21 +24,21 @@ def fib_sphere(n, r=1.0, c=(0.0, 0.0, 0.0)):
     return np.asarray(c) + r * u, u
 
 
-def test_knn_fallback_equals_ckdtree():
+def test_knn_used_equals_ckdtree():
     rng = np.random.default_rng(0)
     ref = rng.uniform(-1, 1, (700, 3))
     q = rng.uniform(-1, 1, (300, 3))
     valid = rng.uniform(size=700) > 0.1
-    idx, d2 = P._knn_brute(jnp.asarray(ref), jnp.asarray(q), 8, ref_valid=jnp.asarray(valid))
+    idx, d2 = P.knn(jnp.asarray(ref), jnp.asarray(q), 8, ref_valid=jnp.asarray(valid))
     tree = cKDTree(ref[valid])
     dd, ii = tree.query(q, 8)
     back = np.flatnonzero(valid)[ii]
     assert np.array_equal(np.asarray(idx), back)
     err = np.max(np.abs(np.sqrt(np.asarray(d2)) - dd))
-    print(f"knn fallback vs cKDTree: identical indices, max |dist diff| = {err:.1e}")
+    print(f"knn used by the points ops vs cKDTree: identical indices, max |dist diff| = {err:.1e}")
     assert err < 1e-12
     # fewer valid points than k: -1 / inf padding
-    idx, d2 = P._knn_brute(jnp.asarray(ref[:3]), jnp.asarray(q[:2]), 5)
+    idx, d2 = P.knn(jnp.asarray(ref[:3]), jnp.asarray(q[:2]), 5)
     assert np.all(np.asarray(idx)[:, 3:] == -1) and np.all(np.isinf(np.asarray(d2)[:, 3:]))
 
 
