@@ -142,7 +142,7 @@ def _select(d, ids, k):
         v = jnp.take_along_axis(x, i[:, None], axis=1)[:, 0]
         return jnp.where(ar[None, :] == i[:, None], inf, x), (v, i)
 
-    _, (v, i) = lax.scan(body, d, None, length=k, unroll=min(k, 8))
+    _, (v, i) = lax.scan(body, d, None, length=k, unroll=1)
     return v.T, jnp.take_along_axis(ids, i.T, axis=1)
 
 
@@ -357,7 +357,7 @@ def _slots(k: int) -> int:
 
 
 def _knn_cell_size(ref, valid, k):
-    """Cell side for kNN: 1.25 x the median k-th neighbour distance of 16 strided points.
+    """Cell side for kNN: 1.5 x the median k-th neighbour distance of 16 strided points.
 
     The distance is measured by brute force for ``k' = min(k, 8)`` and scaled by
     ``sqrt(k / k')`` (points on a surface). Only speed depends on this estimate.
@@ -370,7 +370,7 @@ def _knn_cell_size(ref, valid, k):
     dk = jnp.sqrt(d2[:, -1]) * math.sqrt(k / kk)
     ok = valid[pick] & jnp.isfinite(dk) & (dk > 0)
     med = jnp.nanmedian(jnp.where(ok, dk, jnp.nan))
-    return jnp.where(jnp.isfinite(med), 1.25 * med, 0.0)
+    return jnp.where(jnp.isfinite(med), 1.5 * med, 0.0)
 
 
 _B1 = 128  # queries per batch in the first grid pass
