@@ -116,3 +116,205 @@ def real_chessboard(out: Path, quick: bool) -> Section:
 
 
 SECTIONS = [real_chessboard]
+
+
+# ---------------------------------------------------------------------------
+# differentiable metrology: plumb-line distortion calibration, length sensitivity
+# ---------------------------------------------------------------------------
+
+PLUMB = {"shape": (128, 160), "f": 150.0, "c": (79.5, 63.5), "dist": (-0.25, 0.06, 0.0, 0.0, 0.0),
+         "v_edges": (35.0, 80.0, 125.0), "h_edges": (25.0, 64.0, 103.0), "blur": 0.8}
+
+
+def _plumb_scene(u, v):
+    """Undistorted scene: three vertical and three horizontal straight step edges (tanh profiles)."""
+    p = PLUMB
+    s = sum(0.5 * (1 + np.tanh((u - e) / p["blur"])) * (-1) ** i for i, e in enumerate(p["v_edges"]))
+    t = sum(0.5 * (1 + np.tanh((v - e) / p["blur"])) * (-1) ** i for i, e in enumerate(p["h_edges"]))
+    return 0.15 + 0.35 * s + 0.35 * t
+
+
+def plumb_image() -> np.ndarray:
+    """The scene seen through the distorted lens: ``D(u_d, v_d) = scene(undistort(u_d, v_d))`` (Newton inverse)."""
+    import jax.numpy as jnp
+
+    from fsjax.render.camera import undistort_normalized
+
+    p = PLUMB
+    h, w = p["shape"]
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    xy = np.stack([(u - p["c"][0]) / p["f"], (v - p["c"][1]) / p["f"]], -1)
+    und = undistort_normalized(jnp.asarray(p["dist"]), jnp.asarray(xy))
+    assert bool(np.all(np.asarray(und.converged)))
+    xu = np.asarray(und.xy)
+    return _plumb_scene(xu[..., 0] * p["f"] + p["c"][0], xu[..., 1] * p["f"] + p["c"][1])
+
+
+def _plumb_measure(img, k):
+    """Edge points measured by ``measure_pos`` calipers on the image rectified with distortion ``k = (k1, k2)``."""
+    import jax
+    import jax.numpy as jnp
+
+    import fsjax
+    from fsjax.ops._caliper import bilinear
+    from fsjax.render.camera import distort_normalized
+
+    p = PLUMB
+    h, w = p["shape"]
+    v, u = jnp.meshgrid(jnp.arange(h, dtype=img.dtype), jnp.arange(w, dtype=img.dtype), indexing="ij")
+    xy = jnp.stack([(u - p["c"][0]) / p["f"], (v - p["c"][1]) / p["f"]], -1)
+    d = jnp.concatenate([k, jnp.zeros(3, k.dtype)])
+    xd = distort_normalized(d, xy)
+    rect = bilinear(img, xd[..., 1] * p["f"] + p["c"][1], xd[..., 0] * p["f"] + p["c"][0], mode="nearest")
+    im = fsjax.Image(rect)
+    rows = jnp.linspace(12.0, h - 13.0, 9)
+    cols = jnp.linspace(14.0, w - 15.0, 11)
+    hor = jax.vmap(lambda r: fsjax.ops.measure_pos(im, row=r, col=(w - 1) / 2, angle_deg=0.0, length=w - 12,
+                                                   sigma=1.5, threshold=0.05, capacity=3))(rows)
+    ver = jax.vmap(lambda c: fsjax.ops.measure_pos(im, row=(h - 1) / 2, col=c, angle_deg=-90.0, length=h - 12,
+                                                   sigma=1.5, threshold=0.05, capacity=3))(cols)
+    # line j of the vertical edges: points (row, col) of slot j of every horizontal caliper
+    vlines = jnp.stack([hor.row, hor.col], -1).transpose(1, 0, 2)  # (3, 9, 2)
+    hlines = jnp.stack([ver.row, ver.col], -1).transpose(1, 0, 2)  # (3, 11, 2)
+    ok = jnp.all(hor.valid) & jnp.all(ver.valid) & ~jnp.any(hor.truncated) & ~jnp.any(ver.truncated)
+    return vlines, hlines, ok
+
+
+def _straightness(pts):
+    """Perpendicular residuals of points to their total-least-squares line, over the line's spread (unitless)."""
+    import jax.numpy as jnp
+
+    c = pts - jnp.mean(pts, axis=0)
+    lam, vec = jnp.linalg.eigh(c.T @ c)
+    n = vec[:, 0]
+    return (c @ n) / jnp.sqrt(lam[1] / pts.shape[0])
+
+
+def plumb_residuals(k, img):
+    """All lines' normalised perpendicular residuals (vector) for distortion ``k = (k1, k2)``."""
+    import jax.numpy as jnp
+
+    vl, hl, _ = _plumb_measure(img, k)
+    return jnp.concatenate([_straightness(pl) for pl in list(vl) + list(hl)])
+
+
+def plumb_curvature(k, img):
+    """Scalar curvature objective: the sum of squares of :func:`plumb_residuals`."""
+    import jax.numpy as jnp
+
+    r = plumb_residuals(k, img)
+    return jnp.sum(r * r)
+
+
+def _plumb_solve(img):
+    import equinox as eqx
+    import jax.numpy as jnp
+    import optimistix as optx
+
+    @eqx.filter_jit
+    def solve(img):
+        return optx.least_squares(lambda k, a: plumb_residuals(k, a), optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10),
+                                  jnp.zeros(2, img.dtype), img, max_steps=100, throw=False)
+
+    return solve(img)
+
+
+def measure_plumb_line(fd_step: float = 1e-6) -> dict:
+    """Plumb-line calibration of ``(k1, k2)`` through ``measure_pos``: gradient FD check and the LM solve."""
+    import jax
+    import jax.numpy as jnp
+    import optimistix as optx
+
+    img = jnp.asarray(plumb_image())
+    truth = np.asarray(PLUMB["dist"][:2])
+    k_probe = jnp.asarray([-0.1, 0.0])
+    curv = jax.jit(plumb_curvature)
+    g = jax.jit(jax.grad(plumb_curvature))(k_probe, img)
+    fd = np.array([(float(curv(k_probe + fd_step * e, img)) - float(curv(k_probe - fd_step * e, img)))
+                   / (2 * fd_step) for e in np.eye(2)])
+    sol = _plumb_solve(img)
+    k = np.asarray(sol.value)
+    _, _, ok = jax.jit(_plumb_measure)(img, sol.value)
+    # displacement error of the recovered distortion over the image, in pixels
+    p = PLUMB
+    h, w = p["shape"]
+    v, u = np.mgrid[0:h:8, 0:w:8].astype(float)
+    xy = np.stack([(u - p["c"][0]) / p["f"], (v - p["c"][1]) / p["f"]], -1)
+    from fsjax.render.camera import distort_normalized
+
+    dd = lambda kk: np.asarray(distort_normalized(jnp.asarray(np.r_[kk, 0, 0, 0]), jnp.asarray(xy)))  # noqa: E731
+    field_err = np.abs(dd(k) - dd(truth)).max() * p["f"]
+    field_max = np.abs(dd(truth) - xy).max() * p["f"]
+    res = jax.jit(plumb_residuals)
+    rms = lambda kk: float(np.sqrt(np.mean(np.asarray(res(jnp.asarray(kk), img)) ** 2)))  # noqa: E731
+    return {"image": np.asarray(img), "truth": truth, "k": k, "converged": bool(sol.result == optx.RESULTS.successful),
+            "measured_ok": bool(ok), "grad": np.asarray(g), "fd": fd, "field_err_px": float(field_err),
+            "field_max_px": float(field_max), "straightness_fit": rms(k), "straightness_null": rms(np.zeros(2)),
+            "steps": int(sol.stats["num_steps"])}
+
+
+LENGTH = {"shape": (120, 200), "theta": (516.2, 516.4, 99.5, 59.5, -0.06, 0.07, 0.0001, 0.0013, 0.07),
+          "depth_mm": 500.0, "bar_mm": (-10.0, 40.0), "y_mm": 20.0, "blur": 0.7}
+
+
+def _length_camera(theta):
+    import jax.numpy as jnp
+
+    from fsjax.types import Camera
+
+    z, o = jnp.zeros_like(theta[0]), jnp.ones_like(theta[0])
+    K = jnp.stack([jnp.stack([theta[0], z, theta[2]]), jnp.stack([z, theta[1], theta[3]]), jnp.stack([z, z, o])])
+    h, w = LENGTH["shape"]
+    return Camera(K, width=w, height=h, dist=theta[4:9])
+
+
+def length_image() -> np.ndarray:
+    """A bright bar ``bar_mm`` wide (X from -10 to 40 mm) on a fronto-parallel plane at 500 mm, seen through the lens."""
+    import jax.numpy as jnp
+
+    from fsjax.render.camera import backproject
+
+    h, w = LENGTH["shape"]
+    cam = _length_camera(jnp.asarray(LENGTH["theta"]))
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    X = np.asarray(backproject(cam, jnp.stack([jnp.asarray(u), jnp.asarray(v)], -1), LENGTH["depth_mm"]))
+    a, b = LENGTH["bar_mm"]
+    px_mm = LENGTH["theta"][0] / LENGTH["depth_mm"]  # blur in px -> mm
+    s = 0.5 * (np.tanh((X[..., 0] - a) * px_mm / LENGTH["blur"]) - np.tanh((X[..., 0] - b) * px_mm / LENGTH["blur"]))
+    return 0.2 + 0.6 * s
+
+
+def measured_length(theta, img):
+    """Physical bar width (mm): two ``measure_pos`` edges on a caliper, back-projected with intrinsics ``theta``."""
+    import jax.numpy as jnp
+
+    import fsjax
+    from fsjax.render.camera import backproject
+
+    h, w = LENGTH["shape"]
+    cam = _length_camera(theta)
+    row = LENGTH["theta"][3] + LENGTH["theta"][1] * LENGTH["y_mm"] / LENGTH["depth_mm"]
+    e = fsjax.ops.measure_pos(fsjax.Image(img), row=row, col=(w - 1) / 2, angle_deg=0.0, length=w - 10,
+                              sigma=1.5, threshold=0.05, capacity=2)
+    uv = jnp.stack([e.col, e.row], -1)
+    X = backproject(cam, uv, jnp.full((2,), LENGTH["depth_mm"], uv.dtype))
+    return jnp.linalg.norm(X[1] - X[0])
+
+
+def measure_length_sensitivity(fd_step: float = 1e-6) -> dict:
+    """Jacobian of the measured bar width w.r.t. the 9 intrinsics (``jax.jacfwd``) vs central differences."""
+    import jax
+    import jax.numpy as jnp
+
+    img = jnp.asarray(length_image())
+    theta = jnp.asarray(LENGTH["theta"])
+    f = jax.jit(measured_length)
+    L = float(f(theta, img))
+    J = np.asarray(jax.jit(jax.jacfwd(measured_length))(theta, img))
+    fd = np.zeros(9)
+    for i in range(9):
+        h = fd_step * max(1.0, abs(float(theta[i])))
+        e = jnp.zeros(9).at[i].set(h)
+        fd[i] = (float(f(theta + e, img)) - float(f(theta - e, img))) / (2 * h)
+    a, b = LENGTH["bar_mm"]
+    return {"image": np.asarray(img), "length_mm": L, "truth_mm": b - a, "jacobian": J, "fd": fd}
