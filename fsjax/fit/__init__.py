@@ -1,4 +1,5 @@
 """fsjax.fit (placeholder for later issues)."""
+from .bundle_adjust import *  # noqa: F403
 from .rigid import *  # noqa: F401,F403
 from .icp import *  # noqa: F401,F403
 from .ransac3d import *  # noqa: F403
