@@ -21,6 +21,7 @@ from ._label import *  # noqa: F403
 from ._matching import *  # noqa: F403
 from ._measure import *  # noqa: F403
 from ._morphology import *  # noqa: F403
+from ._photometric import *  # noqa: F403
 from ._point import *  # noqa: F403
 from ._points import *  # noqa: F403
 from ._points_curvature import *  # noqa: F403
