@@ -3,6 +3,7 @@ from .bundle_adjust import *  # noqa: F403
 from .rigid import *  # noqa: F401,F403
 from .icp import *  # noqa: F401,F403
 from .ransac3d import *  # noqa: F403
+from .primitives3d import *  # noqa: F403
 from .frames import *  # noqa: F401,F403
 from .chessboard import *  # noqa: F401,F403
 from .calibrate import *  # noqa: F401,F403

@@ -25,6 +25,7 @@ from ._photometric import *  # noqa: F403
 from ._point import *  # noqa: F403
 from ._points import *  # noqa: F403
 from ._points_curvature import *  # noqa: F403
+from ._points_segment import *  # noqa: F403
 from ._points_search import *  # noqa: F403
 from ._segment import *  # noqa: F403
 from ._skeleton import *  # noqa: F403

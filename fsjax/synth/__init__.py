@@ -15,6 +15,8 @@ from ._inspection import edge_sweep as edge_sweep
 from ._inspection import shaft as shaft
 from ._inspection import step_edge as step_edge
 from ._inspection import tilted_edge as tilted_edge
+from ._lidar import LIDAR_OBJECTS as LIDAR_OBJECTS
+from ._lidar import lidar_scene as lidar_scene
 from ._multiview import bundle_scene as bundle_scene
 from ._particles import particle_scene as particle_scene
 from ._phantom import CT_MATERIALS as CT_MATERIALS
