@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from fsjax.data import mesh_arrays
-from fsjax.ops import knn, radius_search
+from fsjax import Mesh
+from fsjax.data import bunny, mesh_arrays
+from fsjax.ops import knn, radius_search, sample_surface
+from fsjax.synth._pool import icosphere
 
 
 RTOL = 8 * np.finfo(np.float64).eps
@@ -89,10 +91,15 @@ def _clouds():
     # bunny vertices (real scan)
     v, _ = mesh_arrays("bunny")
     bun = v[rng.choice(len(v), 3000, replace=False)]
-    return {"uniform": uni, "lattice_dup": dup, "clustered": clus, "planar": plane, "bunny": bun}
+    sampled = np.asarray(sample_surface(bunny(), n=3000, seed=3).xyz)
+    return {"uniform": uni, "lattice_dup": dup, "clustered": clus, "planar": plane, "bunny": bun,
+            "bunny_sampled": sampled}
 
 
-@pytest.mark.parametrize("name", ["uniform", "lattice_dup", "clustered", "planar", "bunny"])
+NAMES = ["uniform", "lattice_dup", "clustered", "planar", "bunny", "bunny_sampled"]
+
+
+@pytest.mark.parametrize("name", NAMES)
 def test_knn_exact_vs_ckdtree(name):
     ref = _clouds()[name]
     rng = np.random.default_rng(1)
@@ -109,7 +116,7 @@ def test_knn_exact_vs_ckdtree(name):
     print(f"knn {name}: {len(ref)} refs, {rows} query rows identical to cKDTree (k = 1, 8, 32; grid and brute)")
 
 
-@pytest.mark.parametrize("name", ["uniform", "lattice_dup", "clustered", "planar", "bunny"])
+@pytest.mark.parametrize("name", NAMES)
 def test_radius_exact_vs_ckdtree(name):
     ref = _clouds()[name]
     rng = np.random.default_rng(2)
@@ -201,3 +208,112 @@ def test_bad_input():
     # empty clouds
     idx, d2 = knn(np.zeros((0, 3)), ref, 3)
     assert idx.shape == (10, 3) and np.all(np.asarray(idx) == -1)
+
+
+# ---------------------------------------------------------------------------
+# sample_surface
+# ---------------------------------------------------------------------------
+
+
+def _areas(v, f):
+    return 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+
+
+def test_sample_surface_area_split_3_to_1():
+    # two disjoint triangles with areas 3 and 1 (in different planes)
+    v = np.array([[0.0, 0, 0], [3, 0, 0], [0, 2, 0], [5, 0, 1], [7, 0, 1], [5, 0, 2]])
+    f = np.array([[0, 1, 2], [3, 4, 5]])
+    np.testing.assert_allclose(_areas(v, f), [3.0, 1.0])
+    n = 40000
+    p = sample_surface(Mesh(v, f), n=n, seed=11)
+    x = np.asarray(p.xyz)
+    on_big = np.abs(x[:, 2]) < 1e-12
+    on_small = np.abs(x[:, 1]) < 1e-12
+    assert np.all(on_big ^ on_small)  # every point exactly on one of the two planes
+    # inside the triangles (barycentric test)
+    assert np.all((x[on_big, 0] >= 0) & (x[on_big, 1] >= 0) & (x[on_big, 0] / 3 + x[on_big, 1] / 2 <= 1 + 1e-12))
+    assert np.all((x[on_small, 0] >= 5) & (x[on_small, 2] >= 1)
+                  & ((x[on_small, 0] - 5) / 2 + (x[on_small, 2] - 1) <= 1 + 1e-12))
+    frac = on_big.mean()
+    sd = np.sqrt(0.75 * 0.25 / n)
+    print(f"sample_surface 3:1 triangles: fraction on the big one {frac:.4f} (truth 0.75, 4 sd = {4 * sd:.4f})")
+    assert abs(frac - 0.75) < 4 * sd
+    nr = np.asarray(p.normals)
+    np.testing.assert_allclose(nr[on_big], np.broadcast_to([0, 0, 1.0], nr[on_big].shape), atol=1e-15)
+    np.testing.assert_allclose(nr[on_small], np.broadcast_to([0, -1.0, 0], nr[on_small].shape), atol=1e-15)
+
+
+def _chi2(counts, expected):
+    return float(np.sum((counts - expected) ** 2 / expected))
+
+
+def test_sample_surface_uniform_per_area_on_bunny():
+    v, f = mesh_arrays("bunny")
+    area = _areas(v, f)
+    n = 60000
+    x = np.asarray(sample_surface(bunny(), n=n, seed=5).xyz)
+    # 40 bins of equal area: faces sorted by centroid height (y), cut by cumulative area
+    nb = 40
+    order = np.argsort(v[f].mean(axis=1)[:, 1])
+    cum = np.cumsum(area[order]) / area.sum()
+    bin_of_face = np.empty(len(f), int)
+    bin_of_face[order] = np.minimum((cum * nb - 1e-12).astype(int), nb - 1)
+    expected = np.bincount(bin_of_face, weights=area, minlength=nb) / area.sum() * n
+    # each sample's face, approximated by the nearest face centroid (the bands are wide)
+    _, face = cKDTree(v[f].mean(axis=1)).query(x)
+    counts = np.bincount(bin_of_face[face], minlength=nb)
+    chi2 = _chi2(counts, expected)
+    # null: a face chosen uniformly (ignoring area), then a uniform point in it
+    rng = np.random.default_rng(0)
+    fu = rng.integers(0, len(f), n)
+    counts0 = np.bincount(bin_of_face[fu], minlength=nb)
+    chi2_0 = _chi2(counts0, expected)
+    print(f"sample_surface bunny: chi2 per-area uniformity over {nb} equal-area bands = {chi2:.1f} "
+          f"(df {nb - 1}, 0.1% critical 73.4); null (faces uniform, not area-weighted) = {chi2_0:.0f}")
+    assert chi2 < 73.4 < chi2_0
+
+
+def test_sample_surface_within_triangle_and_sphere():
+    # within one triangle: the 4 midpoint sub-triangles get equal shares
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    n = 20000
+    x = np.asarray(sample_surface(Mesh(v, np.array([[0, 1, 2]])), n=n, seed=2).xyz)
+    sub = np.where(x[:, 0] > 0.5, 0, np.where(x[:, 1] > 0.5, 1, np.where(x[:, 0] + x[:, 1] < 0.5, 2, 3)))
+    chi2 = _chi2(np.bincount(sub, minlength=4), n / 4)
+    print(f"sample_surface one triangle: chi2 over 4 midpoint sub-triangles = {chi2:.2f} (df 3, 0.1% crit 16.3)")
+    assert chi2 < 16.3
+    # icosphere: points on the faces, normals outward and unit
+    vi, fi = icosphere(2, radius=2.0)
+    p = sample_surface(Mesh(vi, fi), n=4000, key=jax.random.PRNGKey(9))
+    xs, ns = np.asarray(p.xyz), np.asarray(p.normals)
+    assert np.all(np.sum(xs * ns, axis=1) > 0)
+    np.testing.assert_allclose(np.linalg.norm(ns, axis=1), 1.0, atol=1e-14)
+    assert np.all(np.linalg.norm(xs, axis=1) <= 2.0 + 1e-12) and np.all(np.linalg.norm(xs, axis=1) > 1.8)
+
+
+def test_sample_surface_determinism_and_bad_input():
+    m = Mesh(*icosphere(1))
+    a = np.asarray(sample_surface(m, n=100, seed=3).xyz)
+    b = np.asarray(jax.jit(lambda mm: sample_surface(mm, n=100, seed=3))(m).xyz)
+    c = np.asarray(sample_surface(m, n=100, seed=4).xyz)
+    d = np.asarray(sample_surface(m, n=100, seed=4, key=jax.random.PRNGKey(3)).xyz)
+    np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-15)  # jit may fuse multiply-adds
+    np.testing.assert_array_equal(a, np.asarray(sample_surface(m, n=100, seed=3).xyz))
+    np.testing.assert_array_equal(a, d)  # the key overrides the seed
+    assert not np.allclose(a, c)
+    # invalid faces are never sampled
+    fv = np.ones(80, bool)
+    fv[40:] = False
+    p = sample_surface(Mesh(*icosphere(1), face_valid=fv), n=2000, seed=0)
+    v, f = icosphere(1)
+    _, near = cKDTree(v[f].mean(axis=1)).query(np.asarray(p.xyz))
+    assert np.all(near < 40)
+    with pytest.raises(ValueError, match="sample_surface: argument 'n'"):
+        sample_surface(m, n=0)
+    with pytest.raises(TypeError, match="sample_surface: argument 'n'"):
+        sample_surface(m, n=10.5)
+    flat = Mesh(np.zeros((3, 3)), np.array([[0, 1, 2]]))
+    with pytest.raises(ValueError, match="sample_surface: argument 'mesh' has no valid face"):
+        sample_surface(flat, n=10)
+    out = jax.jit(lambda mm: sample_surface(mm, n=10))(flat)  # under jit: fails closed
+    assert not np.any(np.asarray(out.valid)) and np.all(np.isnan(np.asarray(out.xyz)))
