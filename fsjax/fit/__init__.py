@@ -7,3 +7,4 @@ from .primitives3d import *  # noqa: F403
 from .frames import *  # noqa: F401,F403
 from .chessboard import *  # noqa: F401,F403
 from .calibrate import *  # noqa: F401,F403
+from .twoview import *  # noqa: F401,F403
