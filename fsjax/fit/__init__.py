@@ -8,3 +8,4 @@ from .frames import *  # noqa: F401,F403
 from .chessboard import *  # noqa: F401,F403
 from .calibrate import *  # noqa: F401,F403
 from .twoview import *  # noqa: F401,F403
+from .pnp import *  # noqa: F401,F403

@@ -1,0 +1,284 @@
+"""Perspective-n-point: DLT initialisation, Levenberg-Marquardt refinement, RANSAC.
+
+Conventions:
+
+* World points ``X (N, 3)``, pixels ``uv (N, 2)`` as ``(u, v) = (column, row)``; intrinsics
+  ``K`` and optional Brown-Conrady ``dist`` of :mod:`fsjax.render.camera`, whose
+  :func:`~fsjax.render.project` is the projection used in the refinement.
+* The returned pose is ``camera_from_world`` (OpenCV ``solvePnP``'s ``rvec, tvec``):
+  ``X_cam = R X + t``. :meth:`PnPResult.camera` gives the ``world_from_camera``
+  :class:`fsjax.Camera` used everywhere else in fsjax.
+* Fail closed: fewer than 6 points, or (nearly) coplanar points (the DLT of a 3x4 matrix
+  needs non-coplanar points: all coplanar configurations leave a 3-dimensional family of
+  solutions), give ``valid=False``, NaN pose and a ``reason`` code (:data:`PNP_REASONS`).
+  Coplanarity is measured by the ratio of the smallest to the largest singular value of
+  the centred points (< ``1e-3``).
+
+Method: the normalised DLT (Hartley and Zisserman 2004, section 7.1: 3-D points centred
+and scaled to mean distance sqrt(3), normalised camera coordinates ``K^-1 uv``; the 3x3
+block projected to the nearest rotation by SVD, scale from its singular values, sign from
+positive depth), then ``optimistix.LevenbergMarquardt`` on the reprojection residuals in
+pixels with the rotation updated as ``exp(w) R0``. RANSAC draws ``n_hypotheses`` 6-point
+samples, fits and scores them (truncated-quadratic MSAC on the reprojection error) in one
+``vmap``, refits the best inlier set and refines it.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from ..render.camera import project
+from ..types import Camera
+from .calibrate import rodrigues
+from .twoview import normalized_points
+
+__all__ = ["PNP_REASONS", "PnPResult", "pnp_dlt", "solve_pnp", "solve_pnp_ransac"]
+
+PNP_REASONS = (
+    "ok",
+    "too few points (need 6)",
+    "coplanar points (the DLT needs non-coplanar 3-D points)",
+    "too few RANSAC inliers (need 6)",
+    "non-finite input",
+)
+
+_COPLANAR = 1e-3
+
+
+class PnPResult(eqx.Module):
+    """Result of :func:`solve_pnp` / :func:`solve_pnp_ransac`.
+
+    Attributes:
+        R, t: ``camera_from_world`` pose (NaN when not ``valid``).
+        inliers: ``(N,)`` points used (all finite points for :func:`solve_pnp`).
+        n_inliers: their count.
+        rms_px: RMS reprojection error of the inliers (px).
+        iterations: LM steps. converged: optimistix reported success.
+        valid: a pose was determined. reason: int32 code into :data:`PNP_REASONS`.
+    """
+
+    R: Float[Array, "3 3"]
+    t: Float[Array, "3"]
+    inliers: Bool[Array, " N"]
+    n_inliers: Int[Array, ""]
+    rms_px: Float[Array, ""]
+    iterations: Int[Array, ""]
+    converged: Bool[Array, ""]
+    valid: Bool[Array, ""]
+    reason: Int[Array, ""]
+
+    @property
+    def message(self) -> str:
+        return PNP_REASONS[int(self.reason)]
+
+    def camera(self, K, width: int, height: int, dist=None) -> Camera:
+        """The ``world_from_camera`` :class:`Camera` of this pose."""
+        return Camera(jnp.asarray(K), width=width, height=height, dist=dist, R=self.R.T, t=-(self.R.T @ self.t))
+
+
+def _project_cw(R, t, X, K, dist):
+    cam = Camera(K, width=1, height=1, dist=dist, R=R.T, t=-(R.T @ t))
+    return project(cam, X)[0]
+
+
+def _dlt(X, x, w):
+    """Weighted normalised DLT of ``[R | t]`` from world points and normalised image coordinates."""
+    ws = jnp.maximum(jnp.sum(w), 1e-300)
+    c = jnp.sum(X * w[:, None], 0) / ws
+    s = jnp.sqrt(3.0) / jnp.maximum(jnp.sum(jnp.linalg.norm(X - c, axis=1) * w) / ws, 1e-300)
+    Xn = (X - c) * s
+    Xh = jnp.concatenate([Xn, jnp.ones_like(Xn[:, :1])], 1)
+    z = jnp.zeros_like(Xh)
+    r1 = jnp.concatenate([Xh, z, -x[:, :1] * Xh], 1)
+    r2 = jnp.concatenate([z, Xh, -x[:, 1:] * Xh], 1)
+    A = jnp.concatenate([r1 * w[:, None], r2 * w[:, None]], 0)
+    _, vec = jnp.linalg.eigh(A.T @ A)
+    P = vec[:, 0].reshape(3, 4)
+    # undo the normalisation: X_n = s (X - c)  =>  P_world = P_n [[s I, -s c], [0, 1]]
+    T = jnp.concatenate([jnp.concatenate([s * jnp.eye(3, dtype=X.dtype), -s * c[:, None]], 1),
+                         jnp.asarray([[0.0, 0.0, 0.0, 1.0]], X.dtype)], 0)
+    P = P @ T
+    M = P[:, :3]
+    U, S, Vt = jnp.linalg.svd(M)
+    scale = jnp.mean(S)
+    R = U @ Vt
+    t = P[:, 3] / scale
+    # P = lambda [R | t] with lambda of either sign: det(M) = lambda^3 gives the sign
+    sgn = jnp.where(jnp.linalg.det(R) < 0, -1.0, 1.0)
+    R, t = R * sgn, t * sgn
+    return R, t
+
+
+def pnp_dlt(X, uv, K, dist=None) -> tuple[Float[Array, "3 3"], Float[Array, "3"]]:
+    """Normalised DLT pose ``camera_from_world`` from >= 6 non-coplanar points (no refinement).
+
+    Example:
+        >>> from fsjax.fit.pnp import pnp_dlt
+        >>> from fsjax.fit.calibrate import rodrigues
+        >>> rng = np.random.default_rng(0)
+        >>> X = rng.uniform(-1, 1, (10, 3))
+        >>> R = np.asarray(rodrigues(jnp.asarray([0.1, -0.2, 0.3]))); t = np.array([0.1, 0.2, 5.0])
+        >>> K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+        >>> P = X @ R.T + t; uv = P[:, :2] / P[:, 2:] * 500 + [320, 240]
+        >>> Re, te = pnp_dlt(jnp.asarray(X), jnp.asarray(uv), K)
+        >>> bool(np.allclose(Re, R, atol=1e-9)), bool(np.allclose(te, t, atol=1e-9))
+        (True, True)
+    """
+    X = jnp.asarray(X)
+    x = normalized_points(jnp.asarray(uv, X.dtype), jnp.asarray(K, X.dtype), dist)
+    return _dlt(X, x, jnp.ones(X.shape[0], X.dtype))
+
+
+def _resid(y, args):
+    R0, X, uv, w, K, dist = args
+    R = rodrigues(y[:3]) @ R0
+    p = _project_cw(R, y[3:], X, K, dist)
+    return ((p - uv) * w[:, None]).reshape(-1)
+
+
+def _refine(R0, t0, X, uv, w, K, dist, max_steps):
+    sol = optx.least_squares(_resid, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
+                             jnp.concatenate([jnp.zeros(3, X.dtype), t0]), (R0, X, uv, w, K, dist),
+                             max_steps=max_steps, throw=False)
+    R = rodrigues(sol.value[:3]) @ R0
+    return R, sol.value[3:], jnp.asarray(sol.stats["num_steps"]), sol.result == optx.RESULTS.successful
+
+
+def _coplanar(X, w):
+    ws = jnp.maximum(jnp.sum(w), 1e-300)
+    c = jnp.sum(X * w[:, None], 0) / ws
+    S = jnp.linalg.svd((X - c) * w[:, None], compute_uv=False)
+    return S[2] < _COPLANAR * S[0]
+
+
+def _check(fn, X, uv):
+    X = jnp.asarray(X)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise ValueError(f"{fn}(X): expected (N, 3) world points, got {X.shape}")
+    uv = jnp.asarray(uv, X.dtype)
+    if uv.shape != (X.shape[0], 2):
+        raise ValueError(f"{fn}(uv): expected ({X.shape[0]}, 2) pixels, got {uv.shape}")
+    return X, uv
+
+
+def _finish(R, t, X, uv, inl, K, dist, it, conv, reason):
+    valid = reason == 0
+    p = _project_cw(R, t, X, K, dist)
+    e2 = jnp.where(inl, jnp.sum((p - uv) ** 2, 1), 0.0)
+    n_in = jnp.sum(inl)
+    rms = jnp.sqrt(jnp.sum(e2) / jnp.maximum(n_in, 1))
+    return PnPResult(R=jnp.where(valid, R, jnp.nan), t=jnp.where(valid, t, jnp.nan), inliers=inl, n_inliers=n_in,
+                     rms_px=jnp.where(valid, rms, jnp.nan), iterations=it, converged=conv & valid, valid=valid,
+                     reason=reason.astype(jnp.int32))
+
+
+def solve_pnp(X, uv, K, dist=None, *, max_steps: int = 50) -> PnPResult:
+    """Pose from >= 6 non-coplanar 2-D/3-D correspondences: DLT, then LM on the reprojection error.
+
+    Args:
+      X: ``(N, 3)`` world points. uv: ``(N, 2)`` pixels. K: ``(3, 3)``; dist: optional ``(5,)``.
+      max_steps: LM step cap.
+
+    Returns:
+      :class:`PnPResult` (all finite points are used; no outlier rejection).
+
+    Example:
+        >>> from fsjax.fit.pnp import solve_pnp
+        >>> X = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (10, 3)) + [0, 0, 6])
+        >>> uv = X[:, :2] / X[:, 2:] * 500 + 320
+        >>> res = solve_pnp(X, uv, np.array([[500.0, 0, 320], [0, 500.0, 320], [0, 0, 1]]))
+        >>> bool(res.valid), float(res.rms_px) < 1e-9
+        (True, True)
+        >>> flat = X.at[:, 2].set(6.0)
+        >>> solve_pnp(flat, flat[:, :2] / 6.0 * 500 + 320, np.eye(3)).message
+        'coplanar points (the DLT needs non-coplanar 3-D points)'
+    """
+    X, uv = _check("solve_pnp", X, uv)
+    return _solve_pnp(X, uv, jnp.asarray(K, X.dtype), None if dist is None else jnp.asarray(dist, X.dtype),
+                      int(max_steps))
+
+
+@eqx.filter_jit
+def _solve_pnp(X, uv, K, dist, max_steps):
+    finite = jnp.all(jnp.isfinite(X), 1) & jnp.all(jnp.isfinite(uv), 1)
+    Xs = jnp.where(finite[:, None], X, 0.0)
+    uvs = jnp.where(finite[:, None], uv, 0.0)
+    w = finite.astype(X.dtype)
+    x = normalized_points(uvs, K, dist)
+    x = jnp.where(finite[:, None] & jnp.isfinite(x), x, 0.0)
+    R0, t0 = _dlt(Xs, x, w)
+    R, t, it, conv = _refine(R0, t0, Xs, uvs, w, K, dist, max_steps)
+    n = jnp.sum(finite)
+    reason = jnp.where(n < 6, 1, jnp.where(_coplanar(Xs, w), 2, 0))
+    return _finish(R, t, Xs, uvs, finite, K, dist, it, conv, reason)
+
+
+def solve_pnp_ransac(key, X, uv, K, dist=None, *, threshold_px: float = 2.0, n_hypotheses: int = 256,
+                     max_steps: int = 50) -> PnPResult:
+    """Robust PnP: 6-point DLT hypotheses fitted and scored in one ``vmap``, best inliers refitted and refined.
+
+    Args:
+      key: ``jax.random`` key. X, uv, K, dist: as in :func:`solve_pnp`.
+      threshold_px: inlier threshold on the reprojection error (px).
+      n_hypotheses: static number of samples. max_steps: LM step cap.
+
+    Returns:
+      :class:`PnPResult` with the RANSAC ``inliers``. Coplanar (whole set or inliers) and
+      too-few inputs fail closed with a reason.
+
+    Example:
+        >>> from fsjax.fit.pnp import solve_pnp_ransac
+        >>> X = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (40, 3)) + [0, 0, 6])
+        >>> uv = (X[:, :2] / X[:, 2:] * 500 + 320).at[:10].add(30.0)
+        >>> res = solve_pnp_ransac(jax.random.PRNGKey(0), X, uv, np.array([[500.0, 0, 320], [0, 500.0, 320], [0, 0, 1]]))
+        >>> int(res.n_inliers), float(res.rms_px) < 1e-9
+        (30, True)
+    """
+    X, uv = _check("solve_pnp_ransac", X, uv)
+    if int(n_hypotheses) < 1:
+        raise ValueError(f"solve_pnp_ransac(n_hypotheses=...): must be >= 1, got {n_hypotheses}")
+    if not float(threshold_px) > 0:
+        raise ValueError(f"solve_pnp_ransac(threshold_px=...): must be > 0, got {threshold_px}")
+    return _ransac(key, X, uv, jnp.asarray(K, X.dtype), None if dist is None else jnp.asarray(dist, X.dtype),
+                   jnp.asarray(threshold_px, X.dtype), int(n_hypotheses), int(max_steps))
+
+
+@eqx.filter_jit
+def _ransac(key, X, uv, K, dist, thr, n_hyp, max_steps):
+    n = X.shape[0]
+    finite = jnp.all(jnp.isfinite(X), 1) & jnp.all(jnp.isfinite(uv), 1)
+    Xs = jnp.where(finite[:, None], X, 0.0)
+    uvs = jnp.where(finite[:, None], uv, 0.0)
+    x = normalized_points(uvs, K, dist)
+    x = jnp.where(finite[:, None] & jnp.isfinite(x), x, 0.0)
+    m = min(6, n)
+    pf = finite / jnp.maximum(jnp.sum(finite), 1)
+
+    def err2(R, t):
+        p = _project_cw(R, t, Xs, K, dist)
+        e = jnp.sum((p - uvs) ** 2, 1)
+        return jnp.where(finite & jnp.isfinite(e), e, jnp.inf)
+
+    def hypothesis(k):
+        idx = jax.random.choice(k, n, (m,), replace=False, p=pf)
+        w = jnp.zeros(n, X.dtype).at[idx].set(1.0)
+        R, t = _dlt(Xs, x, w)
+        e = err2(R, t)
+        return jnp.sum(jnp.minimum(e, thr * thr)), R, t
+
+    costs, Rs, ts = jax.vmap(hypothesis)(jax.random.split(key, n_hyp))
+    b = jnp.argmin(costs)
+    inl = err2(Rs[b], ts[b]) < thr * thr
+    R0, t0 = _dlt(Xs, x, inl.astype(X.dtype))
+    R, t, it, conv = _refine(R0, t0, Xs, uvs, inl.astype(X.dtype), K, dist, max_steps)
+    inl = err2(R, t) < thr * thr
+    R, t, it2, conv = _refine(R, t, Xs, uvs, inl.astype(X.dtype), K, dist, max_steps)
+    inl = err2(R, t) < thr * thr
+    n_in = jnp.sum(inl)
+    reason = jnp.where(jnp.sum(finite) < 6, 1, jnp.where(_coplanar(Xs, finite.astype(X.dtype)), 2,
+                                                         jnp.where(n_in < 6, 3, 0)))
+    return _finish(R, t, Xs, uvs, inl, K, dist, it + it2, conv, reason)
