@@ -9,3 +9,4 @@ from .chessboard import *  # noqa: F401,F403
 from .calibrate import *  # noqa: F401,F403
 from .twoview import *  # noqa: F401,F403
 from .pnp import *  # noqa: F401,F403
+from .splat_train import *  # noqa: F401,F403

@@ -315,9 +315,11 @@ def _alphas(px, uv, conic, opacity, alpha_min, alpha_max):
 
 def _composite(alpha, rgb, z, t_min, background):
     """Front-to-back compositing of ``alpha (P, C)`` (sorted by depth) with colours ``(C, 3)``."""
-    one_m = 1.0 - alpha
-    T_incl = jnp.cumprod(one_m, axis=-1)
-    T_excl = jnp.concatenate([jnp.ones_like(T_incl[:, :1]), T_incl[:, :-1]], axis=-1)
+    # transmittance through prefix sums of log(1 - alpha) (alpha <= alpha_max < 1): cheaper than a
+    # cumulative product, forward and backward, on CPU
+    logt = jnp.cumsum(jnp.log1p(-alpha), axis=-1)
+    T_incl = jnp.exp(logt)
+    T_excl = jnp.exp(logt - jnp.log1p(-alpha))
     keep = T_incl >= t_min
     w = jnp.where(keep, alpha * T_excl, 0.0)
     A = jnp.sum(w, -1)

@@ -1,0 +1,278 @@
+"""Gaussian-splatting experiments: step timing, held-out quality, budget sweep, depth distortion.
+
+Usage::
+
+    python tools/splat_experiments.py --stages timing,main,sweep,distortion   # run, save JSON
+    python tools/splat_experiments.py --write-docs                            # docs/splatting.md + figures
+
+Each stage writes its numbers into ``docs/figures/splatting_results.json`` (merged), so stages
+can run in separate processes; ``--write-docs`` only reads that file. Data: Spot rendered by
+fsjax's mesh rasteriser (:func:`fsjax.fit.mesh_views`), cached in ``/tmp``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+RESULTS = ROOT / "docs" / "figures" / "splatting_results.json"
+
+
+def _load():
+    return json.loads(RESULTS.read_text()) if RESULTS.exists() else {}
+
+
+def _save(key, value):
+    # merge under a lock-free re-read (stages may run in parallel processes)
+    d = _load()
+    d[key] = value
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    tmp = RESULTS.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(d, indent=1, sort_keys=True))
+    tmp.replace(RESULTS)
+
+
+def _data(size, views, mesh="spot"):
+    import fsjax
+    from fsjax.fit import mesh_views
+
+    return mesh_views(getattr(fsjax.data, mesh)(), n_views=views, width=size, height=size, holdout_every=6,
+                      capacity=4096)
+
+
+def stage_timing(args):
+    import jax
+
+    from fsjax.fit import train_splats
+
+    data = _data(args.size, 12)
+    out = {}
+    for n in [int(x) for x in args.timing_sizes.split(",")]:
+        r = train_splats(jax.random.key(0), data, n_init=n, max_splats=n, iterations=4, densify_from=10**9,
+                         progress=False, capacity=args.capacity)
+        out[str(n)] = {"step_s": r.step_seconds, "compile_s": r.compile_seconds,
+                       "overflow": int(np.max(r.overflow))}
+        print("timing", n, out[str(n)], flush=True)
+        _save(f"timing_{args.size}", out)
+
+
+def _run(data, key, budget, iters, cap, dist_weight=0.0, dist_norm=False):
+    import jax
+
+    from fsjax.fit import evaluate_splats, train_splats
+
+    t0 = time.time()
+    r = train_splats(jax.random.key(key), data, n_init=max(budget // 2, 1), max_splats=budget, iterations=iters,
+                     densify_every=100, densify_from=100, densify_until=int(iters * 0.6), capacity=cap,
+                     dist_weight=dist_weight, dist_normalise=dist_norm, progress=True)
+    wall = time.time() - t0
+    ev = evaluate_splats(r.gaussians, data, capacity=max(cap, 1024))
+    ev_train = evaluate_splats(r.gaussians, data, data.train[:6], capacity=max(cap, 1024))
+    return {"budget": budget, "iterations": iters, "final_splats": int(np.asarray(r.gaussians.valid).sum()),
+            "heldout": ev, "train_psnr": ev_train["psnr"], "step_s": r.step_seconds, "wall_s": wall,
+            "train_overflow_max": int(np.max(r.overflow)), "loss_first": float(r.loss[:20].mean()),
+            "loss_last": float(r.loss[-20:].mean()), "dist_weight": dist_weight, "dist_norm": dist_norm}, r
+
+
+def stage_main(args):
+    data = _data(args.size, args.views)
+    res, r = _run(data, 0, args.main_budget, args.main_iters, args.capacity)
+    print("main", res, flush=True)
+    _save(f"main_{args.size}", res)
+    from fsjax.io_splat import write_splat
+
+    write_splat(f"/tmp/splat_main_{args.size}.splat", r.gaussians)
+    _save_images(data, r.gaussians, args.size)
+
+
+def _save_images(data, g, size):
+    import jax
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fsjax.render import render_splats
+
+    vi = int(data.test[0])
+    cam = jax.tree_util.tree_map(lambda a: a[vi], data.cameras)
+    cam = jax.tree_util.tree_map(lambda a: a.astype(g.means.dtype) if a.dtype.kind == "f" else a, cam)
+    out = render_splats(g, cam, capacity=1024)
+    fig, ax = plt.subplots(1, 3, figsize=(9, 3.2))
+    ax[0].imshow(np.asarray(data.images[vi]))
+    ax[0].set_title("held-out view (mesh raster)")
+    ax[1].imshow(np.clip(np.asarray(out.color), 0, 1))
+    ax[1].set_title("splats")
+    ax[2].imshow(np.asarray(out.alpha), cmap="gray", vmin=0, vmax=1)
+    ax[2].set_title("accumulated alpha")
+    for a in ax:
+        a.axis("off")
+    fig.tight_layout()
+    fig.savefig(ROOT / "docs" / "figures" / f"splatting_heldout_{size}.png", dpi=90)
+    plt.close(fig)
+
+
+def stage_sweep(args):
+    data = _data(args.sweep_size, args.views)
+    out = []
+    for b in [int(x) for x in args.budgets.split(",")]:
+        res, _ = _run(data, 0, b, args.sweep_iters, args.capacity)
+        print("sweep", b, res["heldout"]["psnr"], res["heldout"]["ssim"], flush=True)
+        out.append(res)
+        _save(f"sweep_{args.sweep_size}", out)
+
+
+def stage_distortion(args):
+    data = _data(args.sweep_size, args.views)
+    out = []
+    for w, norm in ((0.0, False), (args.dist_weight, False), (args.dist_weight, True)):
+        res, _ = _run(data, 0, args.dist_budget, args.sweep_iters, args.capacity, dist_weight=w, dist_norm=norm)
+        print("distortion", w, norm, res["heldout"], flush=True)
+        out.append(res)
+        _save(f"distortion_{args.sweep_size}", out)
+
+
+def write_docs():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = _load()
+    figs = ROOT / "docs" / "figures"
+    lines = ["# Gaussian splatting in plain JAX/XLA", "",
+             "Generated by `python tools/splat_experiments.py --write-docs` from",
+             "`docs/figures/splatting_results.json` (written by the experiment stages of the same script).",
+             "Machine: the shared 2-core CPU of the project, **heavily loaded while these ran** (load average",
+             "15-20 from other sessions), so every time below is an upper bound, several times the idle figure.",
+             "", "## What is here", "",
+             "* `fsjax.render.render_splats`: EWA projection with a stated 0.3 px^2 dilation, near-plane culling",
+             "  by the splat's 3-sigma depth extent, exact-support tiles with a fixed per-tile capacity and an",
+             "  overflow count, per-tile depth order, front-to-back compositing with early termination (T < 1e-4),",
+             "  colour, alpha, expected and median depth, 2DGS depth distortion (prefix sums).",
+             "  `render_splats_dense` is the every-splat-on-every-pixel reference: images and gradients agree",
+             "  to ~1e-13 in float64 when no tile overflows (tests/render/test_splat.py).",
+             "* `fsjax.fit.train_splats`: L1 + 0.2 (1 - SSIM), `optimistix.OptaxMinimiser` (Adam per parameter",
+             "  group) stepped through optimistix's `init`/`step`, split/clone by screen-space gradient and",
+             "  opacity pruning under a fixed maximum count, tqdm bar, deterministic under a key.",
+             "* `fsjax.fit.select_frames_by_rotation`, `fsjax.io_splat` (3DGS PLY and 32-byte `.splat`).",
+             "", "Data: Spot (Crane et al.) rendered by fsjax's own mesh rasteriser with vertex colours from the",
+             "normals times a band pattern, cameras on a spiral, every 6th view held out. Initialisation:",
+             "surface samples of the mesh with noise (standing in for an SfM cloud).", ""]
+    for k in sorted(d):
+        if k.startswith("timing_"):
+            lines += [f"## Step time ({k.split('_')[1]} px, one view per step, forward + backward + Adam)", "",
+                      "| splats | step (s) | compile (s) | max tile overflow |", "|---|---|---|---|"]
+            for n, v in sorted(d[k].items(), key=lambda kv: int(kv[0])):
+                lines.append(f"| {int(n):,} | {v['step_s']:.2f} | {v['compile_s']:.1f} | {v['overflow']} |")
+            lines.append("")
+    for k in sorted(d):
+        if k.startswith("main_"):
+            m = d[k]
+            h = m["heldout"]
+            lines += [f"## Training run ({k.split('_')[1]} px)", "",
+                      f"{m['iterations']} steps, budget {m['budget']:,} (final {m['final_splats']:,} splats), "
+                      f"median step {m['step_s']:.2f} s, wall {m['wall_s'] / 60:.1f} min.", "",
+                      "| metric | held-out | train views |", "|---|---|---|",
+                      f"| PSNR (dB) | {h['psnr']:.2f} | {m['train_psnr']:.2f} |",
+                      f"| SSIM | {h['ssim']:.3f} | |",
+                      f"| coverage holes (object pixels with alpha < 0.5): all / top / middle / bottom | "
+                      f"{h['holes']['all']:.3f} / {h['holes']['top']:.3f} / {h['holes']['middle']:.3f} / "
+                      f"{h['holes']['bottom']:.3f} | |",
+                      f"| tile overflow (eval, capacity 1024) | {h['overflow']} | |", ""]
+            goal = "reached" if h["psnr"] >= 30 else "**not reached**"
+            lines += [f"The issue's goal of >= 30 dB held-out PSNR at 128x128 is {goal} in this run "
+                      f"({h['psnr']:.2f} dB); see the limits section.", ""]
+            if (figs / f"splatting_heldout_{k.split('_')[1]}.png").exists():
+                lines += [f"![held-out view](figures/splatting_heldout_{k.split('_')[1]}.png)", ""]
+    for k in sorted(d):
+        if k.startswith("sweep_"):
+            rows = d[k]
+            b = [r["budget"] for r in rows]
+            p = [r["heldout"]["psnr"] for r in rows]
+            s = [r["heldout"]["ssim"] for r in rows]
+            best = max(p)
+            need = min(bb for bb, pp in zip(b, p) if pp >= best - 0.5)
+            fig, ax = plt.subplots(figsize=(5.5, 3.4))
+            ax.semilogx(b, p, "o-", label="held-out PSNR (dB)")
+            ax.axhline(best - 0.5, color="gray", ls=":", label="best - 0.5 dB")
+            ax.set_xlabel("splat budget (max count)")
+            ax.set_ylabel("PSNR (dB)")
+            ax2 = ax.twinx()
+            ax2.semilogx(b, s, "s--", color="C1", label="SSIM")
+            ax2.set_ylabel("SSIM")
+            ax.legend(loc="lower right", fontsize=8)
+            ax.set_title(f"Spot {k.split('_')[1]} px, {rows[0]['iterations']} steps per budget")
+            fig.tight_layout()
+            fig.savefig(figs / f"splatting_budget_{k.split('_')[1]}.png", dpi=90)
+            plt.close(fig)
+            lines += [f"## Budget sweep ({k.split('_')[1]} px, {rows[0]['iterations']} steps each)", "",
+                      "| budget | final splats | held-out PSNR | SSIM | holes (all) | step (s) |",
+                      "|---|---|---|---|---|---|"]
+            for r in rows:
+                lines.append(f"| {r['budget']:,} | {r['final_splats']:,} | {r['heldout']['psnr']:.2f} | "
+                             f"{r['heldout']['ssim']:.3f} | {r['heldout']['holes']['all']:.3f} | {r['step_s']:.2f} |")
+            lines += ["", f"Scene's measured need: **{need:,} splats** (smallest budget within 0.5 dB of the best, "
+                      f"{best:.2f} dB), at this resolution and step count; the sweep stopped at {max(b):,} "
+                      "because of CPU time on the shared machine.", "",
+                      f"![budget sweep](figures/splatting_budget_{k.split('_')[1]}.png)", ""]
+    for k in sorted(d):
+        if k.startswith("distortion_"):
+            rows = d[k]
+            lines += [f"## Depth-distortion loss ({k.split('_')[1]} px)", "",
+                      "2DGS term `sum_ij w_i w_j |z_i - z_j|` per ray (one pass, prefix sums; gradient FD-checked in",
+                      "tests/render/test_splat.py). Thickness = mean over object pixels of distortion / A^2 (the",
+                      "weight-normalised mean pairwise depth separation); median-depth error vs the mesh depth.", "",
+                      "| loss | held-out PSNR | SSIM | thickness | median-depth error | holes |", "|---|---|---|---|---|---|"]
+            for r in rows:
+                name = "none" if r["dist_weight"] == 0 else (f"{r['dist_weight']} x raw" if not r["dist_norm"]
+                                                             else f"{r['dist_weight']} x per-ray normalised")
+                h = r["heldout"]
+                lines.append(f"| {name} | {h['psnr']:.2f} | {h['ssim']:.3f} | {h['thickness']:.4f} | "
+                             f"{h['median_depth_error']:.4f} | {h['holes']['all']:.3f} |")
+            lines += ["", "Reported as measured, whichever way it goes.", ""]
+    lines += ["## Limits", "",
+              "* Early termination is a mask in XLA (exact numbers and gradients, no saved work); every tile",
+              "  evaluates `capacity` splats per pixel, so cost is set by the capacity, not by the scene.",
+              "* Runs are short (hundreds of steps, not the 30k of 3DGS) because the shared CPU was saturated;",
+              "  PSNR figures are therefore below what the method reaches with full schedules.",
+              "* Splatting ignores lens distortion (refused eagerly); colours here are degree-0 SH.", ""]
+    (ROOT / "docs" / "splatting.md").write_text("\n".join(lines))
+    print("wrote docs/splatting.md")
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--stages", default="")
+    ap.add_argument("--write-docs", action="store_true")
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--sweep-size", type=int, default=64)
+    ap.add_argument("--views", type=int, default=48)
+    ap.add_argument("--capacity", type=int, default=512)
+    ap.add_argument("--timing-sizes", default="1000,10000,50000")
+    ap.add_argument("--main-budget", type=int, default=8000)
+    ap.add_argument("--main-iters", type=int, default=800)
+    ap.add_argument("--budgets", default="500,1000,2000,4000,8000")
+    ap.add_argument("--sweep-iters", type=int, default=400)
+    ap.add_argument("--dist-budget", type=int, default=2000)
+    ap.add_argument("--dist-weight", type=float, default=0.1)
+    a = ap.parse_args()
+    import jax
+
+    jax.config.update("jax_enable_x64", False)
+    for s in [x for x in a.stages.split(",") if x]:
+        {"timing": stage_timing, "main": stage_main, "sweep": stage_sweep, "distortion": stage_distortion}[s](a)
+    if a.write_docs:
+        write_docs()
+
+
+if __name__ == "__main__":
+    main()
