@@ -9,8 +9,14 @@ import pytest
 from fsjax import tour_points as T
 from fsjax.tour import Section
 
+# the LiDAR and model-selection figures are also asserted by tests/ops/test_points_segment.py and
+# tests/fit/test_primitives3d.py; their tour runs (compile-heavy) are marked slow
+_HEAVY = ("lidar", "model_selection")
+PARAMS = [pytest.param(f, id=f.__name__, marks=[pytest.mark.slow] if f.__name__ in _HEAVY else [])
+          for f in T.SECTIONS]
 
-@pytest.mark.parametrize("fn", T.SECTIONS, ids=lambda f: f.__name__)
+
+@pytest.mark.parametrize("fn", PARAMS)
 def test_section_runs(fn, tmp_path):
     sec = fn(tmp_path, True)
     assert isinstance(sec, Section)
