@@ -29,6 +29,7 @@ from ._points_segment import *  # noqa: F403
 from ._points_search import *  # noqa: F403
 from ._segment import *  # noqa: F403
 from ._skeleton import *  # noqa: F403
+from ._structured_light import *  # noqa: F403
 from ._threshold import *  # noqa: F403
 from ._threshold_local import *  # noqa: F403
 from ._tomography import *  # noqa: F403
