@@ -53,6 +53,10 @@ does not define an order for ties either); the distances then still equal
 cKDTree's exactly. Everything is dtype-generic (float32 and float64), and
 ``vmap``-able over clouds of equal capacity.
 
+:func:`point_spacing` (registered ``Points -> Feature``, family ``points_search``)
+measures the mean distance from each valid point to its ``k`` nearest other
+valid points, the usual scale for choosing voxel sizes and search radii.
+
 :func:`sample_surface` (the registered op ``Mesh -> Points``, family ``mesh``)
 draws points uniformly per unit area on the valid faces of a mesh, with the
 faces' unit normals (outward winding), deterministically from a PRNG key.
@@ -77,10 +81,10 @@ import numpy as np
 from jax import lax
 
 from ..registry import register
-from ..types import Mesh, Points, is_concrete
+from ..types import Feature, Mesh, Points, is_concrete
 from ._common import check_static_int
 
-__all__ = ["knn", "radius_search", "sample_surface"]
+__all__ = ["knn", "radius_search", "sample_surface", "point_spacing"]
 
 _GMAX = 1024  # cells per grid side: (z * Gy + y) * Gx + x < 2**30 fits int32
 _SENTINEL = np.iinfo(np.int32).max
@@ -623,3 +627,57 @@ def sample_surface(mesh: Mesh, /, *, n: int = 2048, seed: int = 0, key: Any = No
     xyz = jnp.where(good, xyz, jnp.nan)
     nrm = jnp.where(good, nrm, jnp.nan)
     return Points(xyz, valid=jnp.broadcast_to(good, (n,)), normals=nrm)
+
+
+@register(family="points_search", takes=Points, gives=Feature, refs=[
+    "Open3D PointCloud.compute_nearest_neighbor_distance (k = 1)", "Bentley 1975 (k-d tree reference)"])
+def point_spacing(points: Points, /, *, k: int = 1) -> Feature:
+    """Mean distance from each valid point to its ``k`` nearest other valid points.
+
+    ``mean_i mean_{j in N_k(i)} |p_i - p_j|`` over the valid points ``i``, where
+    ``N_k(i)`` are the ``k`` nearest valid points other than ``i`` itself (a duplicate
+    of ``i`` counts, at distance 0). Computed with the exact :func:`knn`.
+
+    Args:
+      points: a ``Points`` cloud (only ``valid`` slots are used).
+      k: number of neighbours, a static int in ``[1, 31]`` (default 1: the
+        nearest-neighbour spacing). Not a knob.
+
+    Returns:
+      ``Feature`` in the unit of the coordinates (``unit="length"``); NaN when fewer
+      than ``k + 1`` points are valid.
+
+    Matches ``scipy.spatial.cKDTree(p).query(p, k + 1)`` distances (self dropped),
+    averaged, to rounding (tested on the bunny, rel. 1e-12), and Open3D's
+    ``compute_nearest_neighbor_distance`` mean for ``k = 1``.
+
+    Example:
+      >>> import numpy as np
+      >>> from fsjax import Points
+      >>> from fsjax.ops import point_spacing
+      >>> g = np.stack(np.meshgrid(*[np.arange(4) * 0.5] * 3, indexing="ij"), -1).reshape(-1, 3)
+      >>> round(float(point_spacing(Points(g)).value), 12)
+      0.5
+    """
+    fn = "point_spacing"
+    k = check_static_int(fn, "k", k, lo=1, hi=31)
+    xyz, valid = points.xyz, points.valid
+    n = xyz.shape[0]
+    if n < 2:
+        return Feature(jnp.asarray(jnp.nan, xyz.dtype), unit="length")
+    kk = min(k + 1, n)
+    idx, d2 = knn(xyz, xyz, kk, ref_valid=valid)
+    own = idx == jnp.arange(n, dtype=jnp.int32)[:, None]
+    d2 = jnp.where(own, jnp.inf, d2)
+    # the row is ascending except for the removed self entry: drop it by a stable shift
+    has_self = jnp.any(own, axis=1, keepdims=True)
+    pos = jnp.arange(kk)[None, :]
+    first_self = jnp.argmax(own, axis=1)[:, None]
+    src = jnp.where(has_self & (pos >= first_self), jnp.minimum(pos + 1, kk - 1), pos)
+    d2k = jnp.take_along_axis(d2, src, axis=1)[:, :k] if kk == k + 1 else d2[:, :k]
+    d = jnp.sqrt(jnp.where(jnp.isfinite(d2k), d2k, 0.0))
+    ok_row = valid & jnp.all(jnp.isfinite(d2k), axis=1)
+    nv = jnp.sum(valid)
+    total = jnp.sum(jnp.where(ok_row[:, None], d, 0.0))
+    enough = nv >= k + 1
+    return Feature(jnp.where(enough, total / jnp.where(enough, nv * k, 1), jnp.nan), unit="length")

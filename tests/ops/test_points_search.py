@@ -317,3 +317,31 @@ def test_sample_surface_determinism_and_bad_input():
         sample_surface(flat, n=10)
     out = jax.jit(lambda mm: sample_surface(mm, n=10))(flat)  # under jit: fails closed
     assert not np.any(np.asarray(out.valid)) and np.all(np.isnan(np.asarray(out.xyz)))
+
+
+# ---------------------------------------------------------------------------
+# point_spacing
+# ---------------------------------------------------------------------------
+
+
+def test_point_spacing_vs_ckdtree():
+    from fsjax import Points
+    from fsjax.ops import point_spacing
+
+    x = _clouds()["bunny_sampled"][:2000]
+    valid = np.ones(len(x), bool)
+    valid[::5] = False
+    xv = x[valid]
+    for k in (1, 8):
+        d, _ = cKDTree(xv).query(xv, k + 1)
+        truth = d[:, 1:].mean()
+        got = float(point_spacing(Points(x, valid=valid), k=k).value)
+        rel = abs(got - truth) / truth
+        print(f"point_spacing k={k} on 1600 bunny points: {got:.6e} vs cKDTree {truth:.6e} (rel {rel:.1e})")
+        assert rel < 1e-12
+    # duplicates count at distance 0; fewer than k + 1 valid points -> NaN
+    dup = Points(np.array([[0.0, 0, 0], [0, 0, 0], [1, 0, 0]]))
+    assert float(point_spacing(dup).value) == pytest.approx(1 / 3)
+    assert np.isnan(float(point_spacing(dup, k=3).value))
+    with pytest.raises(ValueError, match="point_spacing: argument 'k'"):
+        point_spacing(dup, k=0)
