@@ -63,6 +63,15 @@ def _verdict(rep: RunReport) -> tuple[bool, str]:
                    f"(mean over seeds {evo0:.4g} vs {rnd:.4g}; after refinement {evo:.4g})")
 
 
+def _saturation_note(rep: RunReport) -> str:
+    """A plain note when train fitness hit the metric's ceiling, so selection could not tell champions apart."""
+    if rep.metric == "psnr" or rep.spread("evolved", "train")["min"] < 1.0 - 1e-12:
+        return ""
+    return (" The GA's train fitness reached the ceiling (1.0) in every seed, so from then on selection could "
+            "not tell pipelines apart: which perfect-on-train champion is kept is an accident of the search, and "
+            "the locked split shows how well it generalises; the train split is too small for this problem.")
+
+
 def render_page(reports: list[RunReport], settings: dict, seconds: float) -> str:
     """The Markdown of ``docs/evolution.md``."""
     out = ["# Evolution: baselines, GA and knob refinement on the locked split", "",
@@ -86,7 +95,8 @@ def render_page(reports: list[RunReport], settings: dict, seconds: float) -> str
                 rep.table(), "",
                 f"Champion (seed {best.seed}, chosen by train fitness; refinement by {best.refine_method}): "
                 + " -> ".join(f"`{_fmt_stage(s)}`" for s in best.champion["stages"]), "",
-                f"{text}.", "", f"![{rep.problem} trajectory](figures/evolution_{rep.problem}.png)", ""]
+                f"{text}." + _saturation_note(rep), "",
+                f"![{rep.problem} trajectory](figures/evolution_{rep.problem}.png)", ""]
     n_beat = sum(b for _, b in verdicts)
     losers = [p for p, b in verdicts if not b]
     out += ["## Summary", "",
