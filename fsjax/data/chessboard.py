@@ -11,7 +11,7 @@ Import from this submodule: ``from fsjax.data.chessboard import chessboard_image
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +34,7 @@ def chessboard_paths() -> list[Path]:
     return paths
 
 
-@lru_cache(maxsize=None)
+@cache
 def _load_all() -> np.ndarray:
     from PIL import Image as _PIL
 

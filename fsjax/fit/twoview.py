@@ -33,9 +33,8 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
-
 import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
 
 from ..render.camera import undistort_normalized
 from .calibrate import rodrigues
@@ -291,8 +290,8 @@ def relative_pose(key, uv1, uv2, K1, K2=None, *, dist1=None, dist2=None, thresho
         >>> K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
         >>> pr = lambda P: (P[:, :2] / P[:, 2:]) * 500 + [320, 240]
         >>> res = relative_pose(jax.random.PRNGKey(0), pr(X), pr(X @ R.T + t), K)
-        >>> bool(res.valid), bool(res.degenerate), [round(float(v), 6) for v in res.t]
-        (True, False, [-1.0, 0.0, 0.0])
+        >>> bool(res.valid), bool(res.degenerate), float(np.abs(np.asarray(res.t) - t).max()) < 1e-6
+        (True, False, True)
     """
     uv1 = jnp.asarray(uv1)
     if uv1.ndim != 2 or uv1.shape[1] != 2:

@@ -22,7 +22,7 @@ def test_real_chessboard_vs_opencv():
     print(f"real chessboard, fsjax corners + fsjax LM: RMS {float(cal.rms):.4f} px vs cv2.calibrateCamera "
           f"(cv2 corners) {cv['rms']:.4f} px ({100 * (float(cal.rms) / cv['rms'] - 1):+.1f} %); " + ", ".join(
               f"{k} {p[k]:.2f} vs {ref[k]:.2f} ({100 * rel[k]:.3f} %)" for k in ref))
-    print(f"  std (J^T J)^-1 sigma^2: " + ", ".join(f"{n} {s:.3g}" for n, s in zip(p, np.asarray(cal.std)))
+    print("  std (J^T J)^-1 sigma^2: " + ", ".join(f"{n} {s:.3g}" for n, s in zip(p, np.asarray(cal.std)))
           + f"; converged {bool(cal.converged)} in {int(cal.iterations)} LM steps; Zhang init fx "
             f"{float(cal.init_K[0, 0]):.1f}")
     print(f"  per-view RMS {np.round(np.asarray(cal.per_view_rms), 3).tolist()}")
@@ -74,7 +74,7 @@ def test_synthetic_known_truth():
     d_e = np.asarray(distort_normalized(jnp.asarray(est[4:]), jnp.asarray(xy))) - xy
     field = np.abs(d_e - d_t).max() / np.abs(d_t).max()
     names = list(cal.params)
-    print("synthetic calibration, 14 views x 54 corners, 0.2 px noise: RMS %.4f px; rel. error (1-sigma) " % float(cal.rms)
+    print(f"synthetic calibration, 14 views x 54 corners, 0.2 px noise: RMS {float(cal.rms):.4f} px; rel. error (1-sigma) "
           + ", ".join(f"{n} {100 * e:.3f} % ({100 * s:.3f} %)" for n, e, s in zip(names, rel, sd)))
     print(f"  distortion field (whole image) max error {100 * field:.3f} % of its max "
           f"({np.abs(d_t).max() * truth[0]:.1f} px); k1 {100 * rel[4]:.3f} %")

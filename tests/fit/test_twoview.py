@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 
 from fsjax.fit.calibrate import rodrigues
-from fsjax.fit.twoview import (decompose_essential, fundamental_8point, normalized_points, relative_pose,
-                               sampson_distance, triangulate_dlt)
+from fsjax.fit.twoview import (
+    decompose_essential,
+    fundamental_8point,
+    normalized_points,
+    relative_pose,
+    sampson_distance,
+    triangulate_dlt,
+)
 
 K = np.array([[520.0, 0, 320.0], [0, 515.0, 240.0], [0, 0, 1.0]])
 
