@@ -2,6 +2,7 @@
 from .bundle_adjust import *  # noqa: F403
 from .rigid import *  # noqa: F401,F403
 from .icp import *  # noqa: F401,F403
+from .global_reg import *  # noqa: F401,F403
 from .ransac3d import *  # noqa: F403
 from .primitives3d import *  # noqa: F403
 from .frames import *  # noqa: F401,F403

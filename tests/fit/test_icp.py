@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 import fsjax
-from fsjax.fit import icp, icp_multistart, rotation_error_deg, rotation_from_axis_angle, rotation_grid
+from fsjax.fit import (
+    icp,
+    icp_multistart,
+    rotation_error_deg,
+    rotation_from_axis_angle,
+    rotation_grid,
+)
 from fsjax.fit.icp import _bunny_points, knn
 from fsjax.tour_registration import measure_basin, measure_self_registration
 
