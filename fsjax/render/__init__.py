@@ -11,3 +11,4 @@ from .sdf import *  # noqa: F403
 from .tonemap import *  # noqa: F403
 from .raycast import *  # noqa: F403
 from .shading import *  # noqa: F403
+from .materials import *  # noqa: F403
