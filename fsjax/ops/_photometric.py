@@ -30,7 +30,6 @@ import itertools
 import math
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -137,17 +136,17 @@ def _pool_normalmap(variant, size):
 # ---------------------------------------------------------------------------
 
 
-def _wls(L, I, w):
-    """Weighted least squares ``argmin sum w (L b - I)^2`` with a rank test (3 x 3 normal equations)."""
+def _wls(L, meas, w):
+    """Weighted least squares ``argmin sum w (L b - meas)^2`` with a rank test (3 x 3 normal equations)."""
     A = L.T @ (w[:, None] * L)
-    y = L.T @ (w * I)
+    y = L.T @ (w * meas)
     ev = jnp.linalg.eigvalsh(A)
     ok = (ev[-1] > 0) & (ev[0] > 1e-8 * ev[-1])
     b = jnp.linalg.solve(jnp.where(ok, A, jnp.eye(3, dtype=A.dtype)), y)
     return b, ok
 
 
-def _two_light_qp(L, I, lit, thr):
+def _two_light_qp(L, meas, lit, thr):
     """Exactly two lit lights: ``min |b|^2`` s.t. the two equalities and the shadowed inequalities.
 
     ``b = b0 + s v`` with ``b0`` the minimum-norm solution of the two equations and ``v`` their
@@ -157,7 +156,7 @@ def _two_light_qp(L, I, lit, thr):
     """
     dt = L.dtype
     idx = jnp.argsort(~lit, stable=True)[:2]
-    L2, I2 = L[idx], I[idx]
+    L2, I2 = L[idx], meas[idx]
     G = L2 @ L2.T
     detG = jnp.linalg.det(G)
     okG = detG > 1e-8
@@ -183,15 +182,15 @@ def _two_light_qp(L, I, lit, thr):
     return b0 + jnp.where(ok, s, 0.0) * v, ok
 
 
-def _lmeds(L, I, triplets, h):
+def _lmeds(L, meas, triplets, h):
     """Least median of squares over all light triplets: exact 3 x 3 solves, criterion = h-th smallest r^2."""
     Lt = L[triplets]  # (T, 3, 3)
-    It = I[triplets]  # (T, 3)
+    It = meas[triplets]  # (T, 3)
     det = jnp.linalg.det(Lt)
     ok = jnp.abs(det) > 1e-6
     eye = jnp.eye(3, dtype=L.dtype)
     b = jnp.linalg.solve(jnp.where(ok[:, None, None], Lt, eye), It[..., None])[..., 0]  # (T, 3)
-    r2 = (b @ L.T - I[None]) ** 2  # (T, K)
+    r2 = (b @ L.T - meas[None]) ** 2  # (T, K)
     crit = jnp.sort(r2, axis=1)[:, h - 1]
     crit = jnp.where(ok, crit, jnp.inf)
     best = jnp.argmin(crit)
@@ -254,7 +253,7 @@ def photometric_stereo(stack: LightStack, /, *, shadow_threshold: float = 0.02, 
     dt = jnp.result_type(stack.data.dtype, L.dtype)
     L = L.astype(dt)
     Hh, Ww = stack.data.shape[-2:]
-    I = jnp.moveaxis(stack.data.astype(dt), 0, -1).reshape(-1, K)
+    meas = jnp.moveaxis(stack.data.astype(dt), 0, -1).reshape(-1, K)
     thr = jnp.asarray(shadow_threshold, dt)
 
     if method == "ls":
@@ -276,7 +275,7 @@ def photometric_stereo(stack: LightStack, /, *, shadow_threshold: float = 0.02, 
             use2 = (n_lit == 2) & ok2
             return jnp.where(use3, b3, b2), use3 | use2
 
-    b, ok = jax.vmap(one)(I)
+    b, ok = jax.vmap(one)(meas)
     rho = jnp.linalg.norm(b, axis=-1)
     ok = ok & (rho > 0) & jnp.all(jnp.isfinite(b), axis=-1)
     n = b / jnp.where(ok, rho, 1.0)[:, None]

@@ -365,12 +365,12 @@ def capture_geometry(scene, rig: StructuredLightRig) -> dict:
     dist = jnp.linalg.norm(to_p, axis=-1)
     ldir = to_p / dist[..., None]
 
-    def vis(p, n, l, tm):
+    def vis(p, n, ld, tm):
         ok = jnp.all(jnp.isfinite(p))
         p = jnp.where(ok, p, 0.0)
         n = jnp.where(ok, n, jnp.asarray([0.0, 0.0, -1.0]))
-        l = jnp.where(ok, l, jnp.asarray([0.0, 0.0, -1.0]))
-        v = _soft_shadow(scene, p + 1e-4 * n, n, l, math.sin(math.radians(0.005)), 0.5, tm, 300, 0.5)
+        ld = jnp.where(ok, ld, jnp.asarray([0.0, 0.0, -1.0]))
+        v = _soft_shadow(scene, p + 1e-4 * n, n, ld, math.sin(math.radians(0.005)), 0.5, tm, 300, 0.5)
         return jnp.where(ok, v, 0.0)
 
     v = jax.vmap(vis)(X.reshape(-1, 3), out.normal.reshape(-1, 3), ldir.reshape(-1, 3),

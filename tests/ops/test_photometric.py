@@ -76,18 +76,18 @@ def test_two_lit_lights_use_the_inequalities():
     L = P.light_directions([40, 40, 40, 40, 40], [0, 90, 180, 225, 300])
     n = np.array([0.7, 0.7, -0.15])
     n /= np.linalg.norm(n)
-    I = 0.6 * np.maximum(L @ n, 0)
-    lit = I > 0.02
-    st = P.LightStack(jnp.asarray(I[:, None, None]), jnp.asarray(L))
+    meas = 0.6 * np.maximum(L @ n, 0)
+    lit = meas > 0.02
+    st = P.LightStack(jnp.asarray(meas[:, None, None]), jnp.asarray(L))
     nm = fsjax.ops.photometric_stereo(st, shadow_threshold=0.02)
     b = np.asarray(nm.normals[0, 0]) * float(nm.albedo[0, 0])
-    print(f"two lit lights ({lit.sum()} of 5): equalities residual {np.max(np.abs(L[lit] @ b - I[lit])):.1e}, "
+    print(f"two lit lights ({lit.sum()} of 5): equalities residual {np.max(np.abs(L[lit] @ b - meas[lit])):.1e}, "
           f"shadowed l.b max {np.max(L[~lit] @ b):.3f} <= 0.02, valid {bool(nm.valid[0, 0])}")
     assert lit.sum() == 2 and bool(nm.valid[0, 0])
-    assert np.max(np.abs(L[lit] @ b - I[lit])) < 1e-12
+    assert np.max(np.abs(L[lit] @ b - meas[lit])) < 1e-12
     assert np.max(L[~lit] @ b) <= 0.02 + 1e-12 and b[2] <= 0
     # one lit light (or none): too little to solve, fails closed
-    one = np.where(np.arange(5) == 0, I, 0.0)
+    one = np.where(np.arange(5) == 0, meas, 0.0)
     nm1 = fsjax.ops.photometric_stereo(P.LightStack(jnp.asarray(one[:, None, None]), jnp.asarray(L)))
     assert not bool(nm1.valid[0, 0]) and np.isnan(float(nm1.albedo[0, 0]))
 

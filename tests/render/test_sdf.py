@@ -156,8 +156,8 @@ def test_csg_signs():
     a = S.Sphere([0.0, 0.0, 0.0], 1.0)
     b = S.Sphere([1.0, 0.0, 0.0], 1.0)
     p_a, p_ab, p_b = jnp.asarray([-0.8, 0, 0.0]), jnp.asarray([0.5, 0, 0.0]), jnp.asarray([1.8, 0, 0.0])
-    U, I, D = S.Union(a, b), S.Intersection(a, b), S.Difference(a, b)
-    signs = [[float(jnp.sign(f(p))) for p in (p_a, p_ab, p_b)] for f in (U, I, D)]
+    U, X, D = S.Union(a, b), S.Intersection(a, b), S.Difference(a, b)
+    signs = [[float(jnp.sign(f(p))) for p in (p_a, p_ab, p_b)] for f in (U, X, D)]
     print(f"CSG signs at (a only, both, b only): union {signs[0]}, intersection {signs[1]}, difference {signs[2]}")
     assert signs == [[-1, -1, -1], [1, -1, 1], [-1, 1, 1]]
 
