@@ -43,7 +43,7 @@ from ..types import Points
 from .icp import ICPResult, _as_cloud, estimate_normals, icp, knn
 from .rigid import NO_HYPOTHESIS, OK, TOO_FEW, _weighted_kabsch, kabsch_umeyama, reason_message
 
-__all__ = ["fpfh", "match_descriptors", "RansacResult", "ransac_registration", "GlobalResult",
+__all__ = ["fpfh", "match_descriptors", "CorrespondenceRansacResult", "ransac_registration", "GlobalResult",
            "global_registration"]
 
 _BINS = 11
@@ -165,7 +165,7 @@ def match_descriptors(desc_src, desc_tgt, valid_src=None, valid_tgt=None, *, mut
     return jnp.maximum(i_st, 0).astype(jnp.int32), ok
 
 
-class RansacResult(eqx.Module):
+class CorrespondenceRansacResult(eqx.Module):
     """Result of :func:`ransac_registration` (``target ~ R source + t``).
 
     Attributes:
@@ -231,7 +231,7 @@ def _ransac_core(key, ps, pt, ok, distance, edge_ratio, *, n_hypotheses, min_inl
                                                        NO_HYPOTHESIS, OK))
     good = reason == OK
     nan = jnp.asarray(jnp.nan, dtype)
-    return RansacResult(R=jnp.where(good, r, nan), t=jnp.where(good, t, nan), n_matches=n_match.astype(jnp.int32),
+    return CorrespondenceRansacResult(R=jnp.where(good, r, nan), t=jnp.where(good, t, nan), n_matches=n_match.astype(jnp.int32),
                         n_inliers=n_in.astype(jnp.int32),
                         inlier_fraction=(n_in / jnp.maximum(n_match, 1)).astype(dtype),
                         n_checked=jnp.sum(checked).astype(jnp.int32), converged=good,
@@ -248,7 +248,7 @@ def ransac_registration(
     n_hypotheses: int = 8192,
     edge_ratio: float = 0.9,
     min_inliers: int = 6,
-) -> RansacResult:
+) -> CorrespondenceRansacResult:
     """Correspondence RANSAC: pairs ``src_xyz[i] <-> tgt_xyz[i]`` where ``match_ok[i]``; all hypotheses in one vmap.
 
     Args:
@@ -277,7 +277,7 @@ def ransac_registration(
 class GlobalResult(eqx.Module):
     """Result of :func:`global_registration`: the RANSAC pose and the ICP-refined one."""
 
-    coarse: RansacResult
+    coarse: CorrespondenceRansacResult
     refined: ICPResult
     coarse_matches_R: Float[Array, "3 3"]
     n_descriptors: Int[Array, ""]

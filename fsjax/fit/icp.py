@@ -1,7 +1,7 @@
 """Iterative closest point: point-to-point, point-to-plane, trimmed, Generalized-ICP, multi-start.
 
 Conventions are those of :mod:`fsjax.fit.rigid` (pose ``q = R p + t`` maps source to target,
-SE(3) tangent ``(w, v)``, reason codes :data:`fsjax.fit.rigid.REASONS`). Clouds are
+SE(3) tangent ``(w, v)``, reason codes :data:`fsjax.fit.rigid.REGISTRATION_REASONS`). Clouds are
 :class:`fsjax.Points` (the ``valid`` mask is honoured; target ``normals`` are used by
 point-to-plane when present) or plain ``(N, 3)`` arrays.
 
@@ -194,7 +194,7 @@ class ICPResult(eqx.Module):
         inlier_fraction: fraction of valid source points with a target point within
             ``inlier_distance`` at the final pose (the fitness).
         n_correspondences: pairs used in the last iteration.
-        reason: int32 code of :data:`fsjax.fit.rigid.REASONS`.
+        reason: int32 code of :data:`fsjax.fit.rigid.REGISTRATION_REASONS`.
     """
 
     R: Float[Array, "*b 3 3"]

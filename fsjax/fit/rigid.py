@@ -10,7 +10,7 @@ Conventions (stated once for the registration modules ``rigid``, ``icp``, ``glob
   Updates in the ICP solvers are applied on the left: ``T <- exp(xi) T``.
 * Weights are non-negative; a weight of 0 (or an invalid point) removes the point.
 * Failing closed: every fit returns a record with ``valid``/``converged`` and an int32
-  ``reason`` code (:data:`REASONS`, text from :func:`reason_message`). When the data cannot
+  ``reason`` code (:data:`REGISTRATION_REASONS`, text from :func:`reason_message`). When the data cannot
   determine the pose (fewer than 3 weighted points, collinear points, non-finite input), the
   pose fields are NaN: never a plausible pose.
 * Float64 is the validated precision (tests enable x64); float32 works, with rotation errors
@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 __all__ = [
-    "REASONS",
+    "REGISTRATION_REASONS",
     "reason_message",
     "RigidFit",
     "kabsch_umeyama",
@@ -42,7 +42,7 @@ __all__ = [
 ]
 
 #: Reason codes shared by all registration records (``reason`` field, int32).
-REASONS: dict[int, str] = {
+REGISTRATION_REASONS: dict[int, str] = {
     0: "ok",
     1: "maximum number of iterations reached before the pose update fell below tolerance",
     2: "too few correspondences (fewer valid / inlier pairs than the model needs)",
@@ -56,7 +56,7 @@ OK, MAX_ITER, TOO_FEW, DEGENERATE, INVALID, LOW_FITNESS, NO_HYPOTHESIS = range(7
 
 def reason_message(code) -> str:
     """The text of a reason code (``int`` or a concrete 0-d array)."""
-    return REASONS.get(int(code), f"unknown reason code {int(code)}")
+    return REGISTRATION_REASONS.get(int(code), f"unknown reason code {int(code)}")
 
 
 def _eps(dtype) -> float:
@@ -203,7 +203,7 @@ class RigidFit(eqx.Module):
         rms: weighted RMS of ``|dst - (scale R src + t)|`` over the used pairs.
         n_used: number of pairs with positive weight.
         valid: the pose is determined by the data.
-        reason: int32 code of :data:`REASONS` (0 when ``valid``).
+        reason: int32 code of :data:`REGISTRATION_REASONS` (0 when ``valid``).
     """
 
     R: Float[Array, "3 3"]
