@@ -509,7 +509,10 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Points
                          f"coordinates")
     xyz = np.where(bad[:, None], 0.0, xyz)
     dt = _float_dtype()
-    fix = (lambda a: None if a is None else jnp.asarray(np.where(np.isfinite(a), a, 0.0), dt))
+
+    def fix(a):
+        return None if a is None else jnp.asarray(np.where(np.isfinite(a), a, 0.0), dt)
+
     try:
         return Points(jnp.asarray(xyz, dt), valid=jnp.asarray(~bad), normals=fix(normals), colors=fix(colors))
     except (TypeError, ValueError) as e:
