@@ -551,6 +551,32 @@ def _radius_jit(ref, valid, qry, r, capacity, brute):
 # ---------------------------------------------------------------------------
 
 
+@jax.jit(static_argnames=("n",))
+def _sample_core(v, f, face_valid, key, n):
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    cr = jnp.cross(b - a, c - a)
+    n2 = jnp.sum(cr * cr, axis=-1)
+    ok = face_valid & (n2 > 0)
+    length = jnp.where(ok, jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
+    area = 0.5 * length
+    total = jnp.sum(area)
+    k1, k2 = jax.random.split(key)
+    u = jax.random.uniform(k1, (n,), dtype=v.dtype)
+    cdf = jnp.cumsum(area)
+    # the face whose cumulative-area interval holds u * total; zero-area faces have empty intervals
+    face = jnp.searchsorted(cdf, u * total, side="right", method="scan_unrolled")
+    face = jnp.clip(face, 0, f.shape[0] - 1)
+    # guard against rounding at the top end landing on a trailing zero-area face
+    last = jnp.max(jnp.where(ok, jnp.arange(f.shape[0]), -1))
+    face = jnp.where(ok[face], face, jnp.maximum(last, 0))
+    r = jax.random.uniform(k2, (n, 2), dtype=v.dtype)
+    s1 = jnp.sqrt(r[:, 0:1])
+    xyz = (1 - s1) * a[face] + s1 * (1 - r[:, 1:2]) * b[face] + s1 * r[:, 1:2] * c[face]
+    nrm = cr[face] / jnp.where(ok[face], length[face], 1.0)[:, None]
+    good = total > 0
+    return jnp.where(good, xyz, jnp.nan), jnp.where(good, nrm, jnp.nan), good, total
+
+
 @register(family="mesh", takes=Mesh, gives=Points, refs=[
     "R. Osada, T. Funkhouser, B. Chazelle, D. Dobkin, 'Shape distributions', ACM TOG 21(4), 2002 (sec. 4.2)"])
 def sample_surface(mesh: Mesh, /, *, n: int = 2048, seed: int = 0, key: Any = None) -> Points:
@@ -598,34 +624,9 @@ def sample_surface(mesh: Mesh, /, *, n: int = 2048, seed: int = 0, key: Any = No
         if is_concrete(seed) and (isinstance(seed, bool) or np.asarray(seed).dtype.kind not in "iu"):
             raise TypeError(f"{fn}: argument 'seed' must be an int, got {seed!r}")
         key = jax.random.PRNGKey(seed)
-    v = mesh.vertices
-    f = mesh.faces
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    cr = jnp.cross(b - a, c - a)
-    n2 = jnp.sum(cr * cr, axis=-1)
-    ok = mesh.face_valid & (n2 > 0)
-    safe = jnp.where(ok, n2, 1.0)
-    length = jnp.where(ok, jnp.sqrt(safe), 0.0)
-    area = 0.5 * length
-    total = jnp.sum(area)
+    xyz, nrm, good, total = _sample_core(mesh.vertices, mesh.faces, mesh.face_valid, key, n)
     if is_concrete(total) and not float(total) > 0:
         raise ValueError(f"{fn}: argument 'mesh' has no valid face with non-zero area")
-    k1, k2 = jax.random.split(key)
-    u = jax.random.uniform(k1, (n,), dtype=v.dtype)
-    cdf = jnp.cumsum(area)
-    # the face whose cumulative-area interval holds u * total; zero-area faces have empty intervals
-    face = jnp.searchsorted(cdf, u * total, side="right", method="scan_unrolled")
-    face = jnp.clip(face, 0, f.shape[0] - 1)
-    # guard against rounding at the top end landing on a trailing zero-area face
-    last = jnp.max(jnp.where(ok, jnp.arange(f.shape[0]), -1))
-    face = jnp.where(ok[face], face, jnp.maximum(last, 0))
-    r = jax.random.uniform(k2, (n, 2), dtype=v.dtype)
-    s1 = jnp.sqrt(r[:, 0:1])
-    xyz = (1 - s1) * a[face] + s1 * (1 - r[:, 1:2]) * b[face] + s1 * r[:, 1:2] * c[face]
-    nrm = cr[face] / jnp.where(ok[face], length[face], 1.0)[:, None]
-    good = total > 0
-    xyz = jnp.where(good, xyz, jnp.nan)
-    nrm = jnp.where(good, nrm, jnp.nan)
     return Points(xyz, valid=jnp.broadcast_to(good, (n,)), normals=nrm)
 
 

@@ -11,7 +11,6 @@ from fsjax.data import bunny, mesh_arrays
 from fsjax.ops import knn, radius_search, sample_surface
 from fsjax.synth._pool import icosphere
 
-
 RTOL = 8 * np.finfo(np.float64).eps
 
 
@@ -130,41 +129,42 @@ def test_radius_exact_vs_ckdtree(name):
 
 def test_knn_valid_mask_and_too_few_points():
     rng = np.random.default_rng(3)
-    ref = rng.random((400, 3))
-    valid = rng.random(400) < 0.5
+    ref = rng.random((3000, 3))  # the shapes of the tests above: compiled programs are reused
+    valid = rng.random(3000) < 0.5
     ref_bad = ref.copy()
     ref_bad[~valid] = np.nan  # invalid slots may hold garbage
-    q = rng.random((100, 3))
+    q = rng.random((600, 3))
     for method in ("grid", "brute"):
-        idx, d2 = knn(ref_bad, q, 16, ref_valid=jnp.asarray(valid), method=method)
-        _check_knn(ref, q, 16, idx, d2, valid=valid)
+        idx, d2 = knn(ref_bad, q, 32, ref_valid=jnp.asarray(valid), method=method)
+        _check_knn(ref, q, 32, idx, d2, valid=valid)
     # fewer valid points than k
-    few = np.zeros(400, bool)
+    few = np.zeros(3000, bool)
     few[[3, 50, 77]] = True
     for method in ("grid", "brute"):
         idx, d2 = knn(ref, q, 8, ref_valid=jnp.asarray(few), method=method)
         _check_knn(ref, q, 8, idx, d2, valid=few)
-        idx, d2 = knn(ref, q, 4, ref_valid=jnp.zeros(400, bool), method=method)
+        idx, d2 = knn(ref, q, 8, ref_valid=jnp.zeros(3000, bool), method=method)
         assert np.all(np.asarray(idx) == -1) and np.all(np.isinf(np.asarray(d2)))
 
 
 def test_knn_far_queries_and_float32():
     rng = np.random.default_rng(4)
     ref = rng.random((3000, 3))
-    q = np.concatenate([rng.random((100, 3)), 50 + rng.random((20, 3)), -(1e6) * rng.random((5, 3))])
+    q = np.concatenate([rng.random((575, 3)), 50 + rng.random((20, 3)), -(1e6) * rng.random((5, 3))])
     idx, d2 = knn(ref, q, 8, method="grid")
     _check_knn(ref, q, 8, idx, d2)
-    ref32, q32 = ref.astype(np.float32), q[:100].astype(np.float32)
+    ref32, q32 = ref.astype(np.float32), q[:600].astype(np.float32)
     idx, d2 = knn(ref32, q32, 8, method="grid")
     assert np.asarray(d2).dtype == np.float32
     dt, it = cKDTree(ref32.astype(np.float64)).query(q32.astype(np.float64), 8)
     # float32: same sets except where two distances agree to float32 rounding
     same = np.mean([set(a) == set(b) for a, b in zip(np.asarray(idx), it)])
-    err = np.max(np.abs(np.sqrt(np.asarray(d2, np.float64)) - dt))
-    print(f"knn float32 vs cKDTree(float64): identical sets {same:.4f}, max |d - d_ref| = {err:.1e}")
-    assert same >= 0.99 and err < 1e-6
+    err = np.max(np.abs(np.sqrt(np.asarray(d2, np.float64)) - dt) / dt)
+    print(f"knn float32 vs cKDTree(float64): identical sets {same:.4f}, max |d - d_ref| / d_ref = {err:.1e}")
+    assert same >= 0.99 and err < 1e-5
 
 
+@pytest.mark.slow
 def test_jit_vmap():
     rng = np.random.default_rng(5)
     refs = jnp.asarray(rng.random((2, 3000, 3)))
