@@ -27,6 +27,7 @@ from ._points import *  # noqa: F403
 from ._points_curvature import *  # noqa: F403
 from ._points_segment import *  # noqa: F403
 from ._points_search import *  # noqa: F403
+from ._render import *  # noqa: F403
 from ._segment import *  # noqa: F403
 from ._skeleton import *  # noqa: F403
 from ._structured_light import *  # noqa: F403
