@@ -40,8 +40,8 @@ def test_depth_rmse_and_nulls(geom):
     rp, _ = _rmse(r["depth_phase"], truth, lit & np.isfinite(r["depth_phase"]))
     print(f"structured light, {rig.camera.height}x{rig.camera.width} camera, {int(lit.sum())} lit pixels, depth span "
           f"{span:.1f} mm, 8-step fringes of {P:g} px + complementary Gray code (5+6 bits): RMSE {rm:.4f} mm, "
-          f"{order_err} Gray-decode (2 pi order) errors; plain Gray period index wrong at {k1_raw} stripe-edge "
-          f"pixels (fixed by the complementary bit)")
+          f"{order_err} Gray-decode (2 pi order) errors; the plain period code k1 alone is wrong at {k1_raw} "
+          f"pixels (stripe edges, which the complementary bit guards)")
     print(f"  nulls: Gray code alone (8 bits, 1-px stripes) RMSE {rg:.3f} mm ({rg / rm:.0f}x worse); "
           f"phase alone (no unwrapping) RMSE {rp:.1f} mm")
     assert 90.0 <= span <= 110.0
