@@ -22,9 +22,11 @@ Conventions (camera model of :mod:`fsjax.render.camera`):
   ``sigma_z = sqrt((W Sigma W^T)_zz)`` is culled only when its whole ``near_extent_sigma``
   (3) sigma extent lies in front of the camera's near plane, ``z + 3 sigma_z < near``. A
   splat whose centre is behind the near plane but whose extent crosses it (a ground splat
-  under a low camera) is kept and projected at the clamped depth ``max(z, near)`` (an
-  approximation that covers the image instead of leaving a hole). Centre-only culling is the
-  defect this avoids (tested).
+  under a low camera) is kept and drawn from the point of its ridge on the near plane,
+  ``p + Sigma_c e_z (near - z) / Sigma_c,zz`` (the conditional mean at depth ``near``), with its
+  peak opacity and the EWA Jacobian at that point: an approximation that covers the image
+  where the splat's visible part is, instead of leaving a hole. Centre-only culling is the
+  defect this avoids (tested here and by the browser viewer test).
 * Per-pixel opacity ``alpha = min(alpha_max, o exp(-q/2))`` with ``q`` the Mahalanobis form
   of the 2-D conic; a splat contributes only where ``alpha >= alpha_min`` (1/255). That rule
   gives every splat an exact finite support: ``q <= r^2`` with ``r^2 = 2 ln(o / alpha_min)``,
@@ -246,7 +248,14 @@ def _project(g, camera, near, dilation_px2, alpha_min, near_extent_sigma, uv_off
     behind = z + near_extent_sigma * sz < near
     alive = g.valid & good_q & finite & ~behind
 
+    # a splat straddling the near plane (centre behind it, extent in front) is drawn from the point
+    # of its ridge at the near plane: p + Sigma e_z (near - z) / Sigma_zz (the conditional mean at
+    # depth `near`), projected there with its peak opacity
     zp = jnp.maximum(z, near)
+    szz = Sc[:, 2, 2]
+    shift = jnp.where(z < near, (zp - z) / jnp.where(szz > 0, szz, 1.0), 0.0)
+    x = x + Sc[:, 0, 2] * shift
+    y = y + Sc[:, 1, 2] * shift
     fx, fy, sk, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
     u = fx * x / zp + sk * y / zp + cx
     v = fy * y / zp + cy
