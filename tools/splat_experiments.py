@@ -174,6 +174,8 @@ def write_docs():
             for n, v in sorted(d[k].items(), key=lambda kv: int(kv[0])):
                 lines.append(f"| {int(n):,} | {v['step_s']:.2f} | {v['compile_s']:.1f} | {v['overflow']} |")
             lines.append("")
+            if d.get("timing_note"):
+                lines += [d["timing_note"], ""]
     for k in sorted(d):
         if k.startswith("main_"):
             m = d[k]
@@ -220,9 +222,15 @@ def write_docs():
             for r in rows:
                 lines.append(f"| {r['budget']:,} | {r['final_splats']:,} | {r['heldout']['psnr']:.2f} | "
                              f"{r['heldout']['ssim']:.3f} | {r['heldout']['holes']['all']:.3f} | {r['step_s']:.2f} |")
-            lines += ["", f"Scene's measured need: **{need:,} splats** (smallest budget within 0.5 dB of the best, "
-                      f"{best:.2f} dB), at this resolution and step count; the sweep stopped at {max(b):,} "
-                      "because of CPU time on the shared machine.", "",
+            if len(rows) >= 3:
+                lines += ["", f"Scene's measured need: **{need:,} splats** (smallest budget within 0.5 dB of the "
+                          f"best, {best:.2f} dB), at this resolution and step count; the sweep stopped at "
+                          f"{max(b):,} because of CPU time on the shared machine.", ""]
+            else:
+                lines += ["", f"**Sweep incomplete**: only {len(rows)} budget(s) finished (up to {max(b):,}) before "
+                          "the session's deadline on the saturated CPU, so no scene need is claimed; rerun "
+                          "`--stages sweep` on a quiet machine.", ""]
+            lines += ["",
                       f"![budget sweep](figures/splatting_budget_{k.split('_')[1]}.png)", ""]
     for k in sorted(d):
         if k.startswith("distortion_"):
