@@ -157,6 +157,34 @@ def _select(d, ids, k):
     return v.T, jnp.take_along_axis(ids, i.T, axis=1)
 
 
+def _select_finite(d, ids, k):
+    """As :func:`_select`, but stops once every row's next smallest entry is ``inf``.
+
+    For radius search: out-of-radius candidates are ``inf``, so the number of passes
+    follows the largest in-radius count of the batch, not the capacity.
+    """
+    b, t = d.shape
+    ar = jnp.arange(t, dtype=jnp.int32)
+    inf = jnp.asarray(jnp.inf, d.dtype)
+
+    def cond(st):
+        i, x, _, _, more = st
+        return (i < k) & more
+
+    def body(st):
+        i, x, vo, io, _ = st
+        j = jnp.argmin(x, axis=1).astype(jnp.int32)
+        v = jnp.take_along_axis(x, j[:, None], axis=1)[:, 0]
+        x = jnp.where(ar[None, :] == j[:, None], inf, x)
+        vo = lax.dynamic_update_slice(vo, v[:, None], (jnp.int32(0), i))
+        io = lax.dynamic_update_slice(io, jnp.take_along_axis(ids, j[:, None], axis=1), (jnp.int32(0), i))
+        return i + 1, x, vo, io, jnp.any(jnp.isfinite(v))
+
+    init = (jnp.int32(0), d, jnp.full((b, k), inf), jnp.zeros((b, k), ids.dtype), jnp.bool_(True))
+    _, _, vo, io, _ = lax.while_loop(cond, body, init)
+    return vo, io
+
+
 def _batched(fn, arrays, B):
     """Apply ``fn`` (batch of B rows -> tuple of (B, ...) arrays) over the rows of ``arrays``."""
     m = arrays[0].shape[0]
@@ -223,8 +251,8 @@ def _brute_queries(refs, q, kk, r2=None):
         d2 = _sqdist(q[:, None, :], r[None, :, :])
         keep = v[None, :] if r2 is None else v[None, :] & (d2 <= r2)
         d2 = jnp.where(keep, d2, inf)
-        bd, bi = _select(jnp.concatenate([bd, d2], 1),
-                         jnp.concatenate([bi, jnp.broadcast_to(ids, d2.shape)], 1), kk)
+        sel = _select if r2 is None else _select_finite
+        bd, bi = sel(jnp.concatenate([bd, d2], 1), jnp.concatenate([bi, jnp.broadcast_to(ids, d2.shape)], 1), kk)
         return (bd, bi, cnt + keep.sum(axis=1, dtype=jnp.int32)), None
 
     init = (jnp.full((b, kk), inf), jnp.full((b, kk), -1, jnp.int32), jnp.zeros(b, jnp.int32))
@@ -354,7 +382,8 @@ def _scan_cells(spts, q, start, length, kk, S, r2=None):
         d2 = _sqdist(q[:, None, :], spts[pos])
         keep = ok if r2 is None else ok & (d2 <= r2)
         d2 = jnp.where(keep, d2, inf)
-        bd, bi = _select(jnp.concatenate([bd, d2], 1), jnp.concatenate([bi, pos], 1), kk)
+        sel = _select if r2 is None else _select_finite
+        bd, bi = sel(jnp.concatenate([bd, d2], 1), jnp.concatenate([bi, pos], 1), kk)
         return j + 1, bd, bi, cnt + jnp.sum(keep, axis=1, dtype=jnp.int32)
 
     init = (jnp.int32(0), jnp.full((b, kk), inf), jnp.zeros((b, kk), jnp.int32), jnp.zeros(b, jnp.int32))
@@ -414,7 +443,7 @@ def _grid_radius(ref, valid, qry, radius, capacity):
     r = jnp.asarray(radius, qry.dtype)
     # a cell a little larger than r: the 27-cell block then contains the closed ball despite rounding
     g = _Grid(ref, valid, r * (1 + 16 * jnp.finfo(qry.dtype).eps))
-    S = _slots(capacity)
+    S = 64  # candidates per step: the count in 27 cells of side r does not scale with the capacity
 
     def one_pass(q):
         start, length, _ = g.runs(q, 1)
