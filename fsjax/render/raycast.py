@@ -150,8 +150,63 @@ def _basis(L):
     return a, jnp.cross(L, a)
 
 
+def _grid_occlusion(mesh, points, L, ignore_face, s_min, grid, capacity, pairs, batch, fn):
+    """Any-hit of the parallel rays ``points + s * L`` through a grid binned along ``L``.
+
+    Returns ``occluded (N,)``, ``incomplete (N,)`` and ``overflow``.
+    """
+    for name, val in (("grid", grid), ("capacity", capacity)):
+        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or int(val) < 1:
+            raise ValueError(f"{fn}({name}=...): must be a positive static int, got {val!r}")
+    v0, e1, e2, ok = _tri(mesh, fn)
+    P = jnp.asarray(points, v0.dtype).reshape(-1, 3)
+    N = P.shape[0]
+    ign = jnp.full(N, -1, jnp.int32) if ignore_face is None else jnp.asarray(ignore_face, jnp.int32).reshape(N)
+    Vv = jnp.where(mesh.vertex_valid[:, None] & jnp.all(jnp.isfinite(mesh.vertices), -1, keepdims=True),
+                   mesh.vertices, jnp.nan).astype(v0.dtype)
+    lo, hi = jnp.nanmin(Vv, axis=0), jnp.nanmax(Vv, axis=0)
+    if s_min is None:
+        s_min = 1e-6 * jnp.linalg.norm(hi - lo)
+    a, b = _basis(L)
+    T = jnp.stack([v0, v0 + e1, v0 + e2], axis=1)
+    pa = jnp.where(ok[:, None], T @ a, 0.0)
+    pb = jnp.where(ok[:, None], T @ b, 0.0)
+    amin = jnp.min(jnp.where(ok[:, None], pa, jnp.inf))
+    amax = jnp.max(jnp.where(ok[:, None], pa, -jnp.inf))
+    bmin = jnp.min(jnp.where(ok[:, None], pb, jnp.inf))
+    bmax = jnp.max(jnp.where(ok[:, None], pb, -jnp.inf))
+    span = jnp.maximum(jnp.maximum(amax - amin, bmax - bmin), jnp.finfo(v0.dtype).tiny)
+    cell = span * (1.0 + 1e-9) / grid
+    a0, b0 = amin, bmin
+    # a triangle covers cells floor(min) .. floor(max) (plus a rounding margin)
+    tol = 1e-7
+    c0 = jnp.floor((jnp.min(pa, 1) - a0) / cell - tol)
+    c1 = jnp.floor((jnp.max(pa, 1) - a0) / cell + tol)
+    r0 = jnp.floor((jnp.min(pb, 1) - b0) / cell - tol)
+    r1 = jnp.floor((jnp.max(pb, 1) - b0) / cell + tol)
+    if pairs is None:
+        pairs = min(grid * grid * capacity, max(64 * v0.shape[0], 4 * grid * grid))
+    table, count, kept, _, _ = _bin(c0, c1, r0, r1, ok, grid, grid, 1, capacity, pairs)
+    qa = jnp.floor((P @ a - a0) / cell)
+    qb = jnp.floor((P @ b - b0) / cell)
+    inside = (qa >= 0) & (qa < grid) & (qb >= 0) & (qb < grid) & jnp.isfinite(qa) & jnp.isfinite(qb)
+    cid = jnp.where(inside, qb.astype(jnp.int32) * grid + qa.astype(jnp.int32), 0)
+
+    def one(args):
+        p, c, ig, ins = args
+        ids = table[c]
+        g = jnp.maximum(ids, 0)
+        use = (ids >= 0) & (ids != ig) & ins
+        _, _, _, hit = _mt(p[None], L[None], v0[g][None], e1[g][None], e2[g][None], s_min)
+        return jnp.any(hit[0] & use)
+
+    occ = jax.lax.map(one, (P, cid, ign, inside), batch_size=min(batch, N))  # (N,)
+    lost = (count - kept)[cid] > 0
+    return occ, inside & lost, jnp.sum(count - kept).astype(jnp.int32)
+
+
 def occluded_parallel(mesh: Mesh, points, direction, *, ignore_face=None, s_min=None, grid: int = 64,
-                      capacity: int = 128) -> Occlusion:
+                      capacity: int = 128, pairs: int | None = None, batch: int = 256) -> Occlusion:
     """Whether the ray from each point along ``direction`` (towards a distant light) hits the mesh.
 
     All rays are parallel, so the mesh is projected along ``direction`` onto the plane spanned
@@ -166,7 +221,9 @@ def occluded_parallel(mesh: Mesh, points, direction, *, ignore_face=None, s_min=
       direction: ``(3,)`` direction towards the light; zero length is refused.
       ignore_face: optional ``(N,)`` int face id per point to skip (the face the point lies on).
       s_min: smallest accepted ray parameter (default ``1e-6`` x the mesh's bounding-box diagonal).
-      grid: static cells per side; capacity: static triangles per cell.
+      grid: static cells per side; capacity: static triangles per cell; pairs: static size of
+        the (triangle, cell) pair buffer (default ``min(grid^2 capacity, max(64 F, 4 grid^2))``; pairs beyond it
+        count as overflow); batch: static number of points tested together (memory).
 
     Returns:
       :class:`Occlusion`.
@@ -178,51 +235,10 @@ def occluded_parallel(mesh: Mesh, points, direction, *, ignore_face=None, s_min=
         >>> [bool(x) for x in fsjax.render.occluded_parallel(m, pts, jnp.asarray([0.0, 0, 1])).occluded]
         [True, False]
     """
-    for name, val in (("grid", grid), ("capacity", capacity)):
-        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or int(val) < 1:
-            raise ValueError(f"occluded_parallel({name}=...): must be a positive static int, got {val!r}")
-    v0, e1, e2, ok = _tri(mesh, "occluded_parallel")
-    L = unit(jnp.asarray(direction, v0.dtype), name="direction", fn="occluded_parallel")
-    P = jnp.asarray(points, v0.dtype).reshape(-1, 3)
-    N = P.shape[0]
-    ign = jnp.full(N, -1, jnp.int32) if ignore_face is None else jnp.asarray(ignore_face, jnp.int32).reshape(N)
-    Vv = jnp.where(mesh.vertex_valid[:, None] & jnp.all(jnp.isfinite(mesh.vertices), -1, keepdims=True),
-                   mesh.vertices, jnp.nan).astype(v0.dtype)
-    lo = jnp.nanmin(Vv, axis=0)
-    hi = jnp.nanmax(Vv, axis=0)
-    if s_min is None:
-        s_min = 1e-6 * jnp.linalg.norm(hi - lo)
-    a, b = _basis(L)
-    T = jnp.stack([v0, v0 + e1, v0 + e2], axis=1)
-    pa, pb = T @ a, T @ b  # (F, 3)
-    pa = jnp.where(ok[:, None], pa, 0.0)
-    pb = jnp.where(ok[:, None], pb, 0.0)
-    amin = jnp.min(jnp.where(ok[:, None], pa, jnp.inf))
-    amax = jnp.max(jnp.where(ok[:, None], pa, -jnp.inf))
-    bmin = jnp.min(jnp.where(ok[:, None], pb, jnp.inf))
-    bmax = jnp.max(jnp.where(ok[:, None], pb, -jnp.inf))
-    span = jnp.maximum(jnp.maximum(amax - amin, bmax - bmin), jnp.finfo(v0.dtype).tiny)
-    cell = span * (1.0 + 1e-9) / grid
-    # cell coordinates; a triangle covers cells floor(min) .. floor(max) (plus a rounding margin)
-    ca = (pa - amin) / cell
-    cb = (pb - bmin) / cell
-    tol = 1e-7
-    c0 = jnp.floor(jnp.min(ca, 1) - tol)
-    c1 = jnp.floor(jnp.max(ca, 1) + tol)
-    r0 = jnp.floor(jnp.min(cb, 1) - tol)
-    r1 = jnp.floor(jnp.max(cb, 1) + tol)
-    table, count, kept, _, _ = _bin(c0, c1, r0, r1, ok, grid, grid, 1, capacity)
-    qa = jnp.floor((P @ a - amin) / cell)
-    qb = jnp.floor((P @ b - bmin) / cell)
-    inside = (qa >= 0) & (qa < grid) & (qb >= 0) & (qb < grid) & jnp.isfinite(qa) & jnp.isfinite(qb)
-    cid = jnp.where(inside, qb.astype(jnp.int32) * grid + qa.astype(jnp.int32), 0)
-    ids = table[cid]  # (N, C)
-    g = jnp.maximum(ids, 0)
-    s, _, _, hit = _mt(P, jnp.broadcast_to(L, P.shape), v0[g], e1[g], e2[g], s_min)
-    hit = hit & (ids >= 0) & (ids != ign[:, None]) & inside[:, None]
-    lost = (count - kept)[cid] > 0
-    return Occlusion(occluded=jnp.any(hit, axis=1), incomplete=inside & lost,
-                     overflow=jnp.sum(count - kept).astype(jnp.int32))
+    L = unit(jnp.asarray(direction, dtype=mesh.vertices.dtype), name="direction", fn="occluded_parallel")
+    occ, inc, ovf = _grid_occlusion(mesh, points, L, ignore_face, s_min, grid, capacity, pairs, batch,
+                                    "occluded_parallel")
+    return Occlusion(occluded=occ, incomplete=inc, overflow=ovf)
 
 
 def sun_directions(direction, *, angular_diameter_deg=0.53, samples: int = 16) -> jnp.ndarray:
@@ -256,13 +272,15 @@ def sun_directions(direction, *, angular_diameter_deg=0.53, samples: int = 16) -
 
 
 def sun_visibility(mesh: Mesh, points, direction, *, angular_diameter_deg=0.53, samples: int = 16,
-                   ignore_face=None, s_min=None, grid: int = 64, capacity: int = 128):
+                   ignore_face=None, s_min=None, grid: int = 64, capacity: int = 128, pairs: int | None = None,
+                   batch: int = 256):
     """Fraction of the solar disc visible from each point: ``(visible (N,), incomplete (N,), overflow)``.
 
-    Averages :func:`occluded_parallel` over :func:`sun_directions` (``samples`` rays over a
-    disc of ``angular_diameter_deg``, 0.53 deg for the Sun seen from Earth), giving hard
-    shadows with penumbrae of the right width. ``incomplete`` flags points where any cell
-    overflowed; ``overflow`` is the total count of dropped (triangle, cell) pairs.
+    Averages exact any-hit shadow rays (:func:`occluded_parallel`, one grid binned per
+    direction) over :func:`sun_directions` (``samples`` rays over a disc of
+    ``angular_diameter_deg``, 0.53 deg for the Sun seen from Earth), giving hard shadows with
+    penumbrae of the right width. ``incomplete`` flags points whose cell overflowed for some
+    direction; ``overflow`` sums the dropped (triangle, cell) pairs over the directions.
 
     Example:
         >>> v = jnp.asarray([[-1.0, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]])
@@ -272,11 +290,14 @@ def sun_visibility(mesh: Mesh, points, direction, *, angular_diameter_deg=0.53, 
         [0.0, 1.0]
     """
     dirs = sun_directions(direction, angular_diameter_deg=angular_diameter_deg, samples=samples)
+    dirs = dirs.astype(mesh.vertices.dtype)
 
     def one(d):
-        r = occluded_parallel(mesh, points, d, ignore_face=ignore_face, s_min=s_min, grid=grid, capacity=capacity)
-        return r.occluded, r.incomplete, r.overflow
+        return _grid_occlusion(mesh, points, d, ignore_face, s_min, grid, capacity, pairs, batch, "sun_visibility")
 
+    for name, val in (("grid", grid), ("capacity", capacity)):
+        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or int(val) < 1:
+            raise ValueError(f"sun_visibility({name}=...): must be a positive static int, got {val!r}")
     occ, inc, ovf = jax.lax.map(one, dirs)
     vis = 1.0 - jnp.mean(occ.astype(dirs.dtype), axis=0)
     return vis, jnp.any(inc, axis=0), jnp.sum(ovf).astype(jnp.int32)

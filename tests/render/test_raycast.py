@@ -48,6 +48,12 @@ def test_occluded_parallel_matches_bruteforce_and_flags_overflow():
           f"all flagged: {bool(jnp.all(small.incomplete[wrong]))}")
     assert int(small.overflow) > 0 and int(wrong.sum()) > 0
     assert bool(jnp.all(small.incomplete[wrong]))
+    # sun_visibility is the mean of the per-direction answers
+    dirs = sun_directions(d, angular_diameter_deg=8.0, samples=5)
+    per = jnp.mean(jnp.stack([occluded_parallel(m, P, di, grid=32, capacity=64, s_min=1e-9).occluded
+                              for di in dirs]).astype(float), axis=0)
+    vis, _, ovf = sun_visibility(m, P, d, angular_diameter_deg=8.0, samples=5, grid=32, capacity=64, s_min=1e-9)
+    assert int(ovf) == 0 and bool(jnp.all(1.0 - per == vis))
 
 
 def test_sun_penumbra_width():
