@@ -5,8 +5,9 @@ Conventions:
 * Every function works on unit vectors broadcast over leading axes ``(..., 3)``: the surface
   normal ``n``, the direction **to** the light ``l`` and the direction **to** the viewer
   ``v`` (all pointing away from the surface). Callers pass unnormalised vectors too: they are
-  normalised here; a zero-length light direction is refused (eagerly when concrete, NaN under
-  ``jit``), never silently treated as some default.
+  normalised here. A zero-length light direction ``l`` is refused (eagerly when concrete, NaN
+  under ``jit``), never silently treated as some default; a zero normal or view vector (a
+  background pixel of a :class:`fsjax.render.Raster`) gives 0.
 * :func:`blinn_phong`, :func:`ggx_brdf`, :func:`ggx_ndf` return the BRDF ``f_r`` (1/sr).
   :func:`lambert`, :func:`lommel_seeliger` and :func:`hapke` return Hapke's *bidirectional
   reflectance* ``r = f_r cos(i)``: the reflected radiance under a collimated light of unit
@@ -78,7 +79,7 @@ def lambert(n, l, *, albedo=1.0) -> jnp.ndarray:
         >>> round(float(fsjax.render.lambert(jnp.asarray([0.0, 0, 1]), jnp.asarray([0.0, 0.6, 0.8]))), 9)
         0.254647909
     """
-    n = unit(n, name="n", fn="lambert")
+    n = _safe_unit(n)
     l = unit(l, name="l", fn="lambert")
     return jnp.asarray(albedo) / math.pi * jnp.maximum(_cos(n, l), 0.0)
 
@@ -95,9 +96,9 @@ def blinn_phong(n, l, v, *, shininess=32.0, ks=1.0) -> jnp.ndarray:
         >>> round(float(fsjax.render.blinn_phong(z, z, z, shininess=8.0)), 9)  # 16 / (8 pi)
         0.636619772
     """
-    n = unit(n, name="n", fn="blinn_phong")
+    n = _safe_unit(n)
     l = unit(l, name="l", fn="blinn_phong")
-    v = unit(v, name="v", fn="blinn_phong")
+    v = _safe_unit(v)
     h = _safe_unit(l + v)
     s = jnp.asarray(shininess)
     val = ks * (s + 8.0) / (8.0 * math.pi) * jnp.maximum(_cos(n, h), 0.0) ** s
@@ -135,8 +136,8 @@ def ggx_ndf(n, h, *, alpha_x=0.3, alpha_y=None, tangent=(1.0, 0.0, 0.0)) -> jnp.
         >>> round(float(fsjax.render.ggx_ndf(z, z, alpha_x=0.5)), 9)  # 1 / (pi a^2)
         1.273239545
     """
-    n = unit(n, name="n", fn="ggx_ndf")
-    h = unit(h, name="h", fn="ggx_ndf")
+    n = _safe_unit(n)
+    h = _safe_unit(h)
     ax = jnp.asarray(alpha_x)
     ay = ax if alpha_y is None else jnp.asarray(alpha_y)
     t, b = _frame(n, jnp.asarray(tangent, dtype=n.dtype))
@@ -157,8 +158,8 @@ def ggx_smith_lambda(n, w, *, alpha_x=0.3, alpha_y=None, tangent=(1.0, 0.0, 0.0)
         >>> float(fsjax.render.ggx_smith_lambda(z, z, alpha_x=0.5))
         0.0
     """
-    n = unit(n, name="n", fn="ggx_smith_lambda")
-    w = unit(w, name="w", fn="ggx_smith_lambda")
+    n = _safe_unit(n)
+    w = _safe_unit(w)
     ax = jnp.asarray(alpha_x)
     ay = ax if alpha_y is None else jnp.asarray(alpha_y)
     t, b = _frame(n, jnp.asarray(tangent, dtype=n.dtype))
@@ -193,9 +194,9 @@ def ggx_brdf(n, l, v, *, alpha_x=0.3, alpha_y=None, tangent=(1.0, 0.0, 0.0), f0=
         >>> round(float(fsjax.render.ggx_brdf(z, z, z, alpha_x=0.5, f0=1.0)), 9)
         0.318309886
     """
-    n = unit(n, name="n", fn="ggx_brdf")
+    n = _safe_unit(n)
     l = unit(l, name="l", fn="ggx_brdf")
-    v = unit(v, name="v", fn="ggx_brdf")
+    v = _safe_unit(v)
     h = _safe_unit(l + v)
     kw = dict(alpha_x=alpha_x, alpha_y=alpha_y, tangent=tangent)
     nl, nv = _cos(n, l), _cos(n, v)
@@ -222,9 +223,9 @@ def lommel_seeliger(n, l, v, *, albedo=1.0) -> jnp.ndarray:
         >>> round(float(fsjax.render.lommel_seeliger(z, z, z, albedo=1.0)), 9)  # 1 / (8 pi)
         0.039788736
     """
-    n = unit(n, name="n", fn="lommel_seeliger")
+    n = _safe_unit(n)
     l = unit(l, name="l", fn="lommel_seeliger")
-    v = unit(v, name="v", fn="lommel_seeliger")
+    v = _safe_unit(v)
     mu0, mu = _cos(n, l), _cos(n, v)
     ok = (mu0 > 0) & (mu > 0)
     return jnp.where(ok, jnp.asarray(albedo) / (4 * math.pi) * mu0 / jnp.where(ok, mu0 + mu, 1.0), 0.0)
@@ -328,9 +329,9 @@ def hapke(n, l, v, *, w=0.5, b0=1.0, h=0.06, xi=0.0, theta_bar_deg=0.0) -> jnp.n
         >>> round(float(r), 9) == round(0.75 / (8 * np.pi) * (1.5 ** 2), 9)
         True
     """
-    n = unit(n, name="n", fn="hapke")
+    n = _safe_unit(n)
     l = unit(l, name="l", fn="hapke")
-    v = unit(v, name="v", fn="hapke")
+    v = _safe_unit(v)
     mu0, mu = _cos(n, l), _cos(n, v)
     ok = (mu0 > 0) & (mu > 0)
     mu0s = jnp.where(ok, mu0, 0.5)
