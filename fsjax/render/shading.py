@@ -55,7 +55,7 @@ def unit(v, *, name: str = "direction", fn: str = "shading") -> jnp.ndarray:
     the result is NaN for such vectors.
 
     Example:
-        >>> [float(x) for x in fsjax.render.unit(jnp.asarray([0.0, 3.0, 4.0]))]
+        >>> [round(float(x), 12) for x in fsjax.render.unit(jnp.asarray([0.0, 3.0, 4.0]))]
         [0.0, 0.6, 0.8]
     """
     v = jnp.asarray(v)
