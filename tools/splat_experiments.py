@@ -168,7 +168,7 @@ def write_docs():
              "normals times a band pattern, cameras on a spiral, every 6th view held out. Initialisation:",
              "surface samples of the mesh with noise (standing in for an SfM cloud).", ""]
     for k in sorted(d):
-        if k.startswith("timing_"):
+        if k.startswith("timing_") and isinstance(d[k], dict):
             lines += [f"## Step time ({k.split('_')[1]} px, one view per step, forward + backward + Adam)", "",
                       "| splats | step (s) | compile (s) | max tile overflow |", "|---|---|---|---|"]
             for n, v in sorted(d[k].items(), key=lambda kv: int(kv[0])):
@@ -222,6 +222,9 @@ def write_docs():
             for r in rows:
                 lines.append(f"| {r['budget']:,} | {r['final_splats']:,} | {r['heldout']['psnr']:.2f} | "
                              f"{r['heldout']['ssim']:.3f} | {r['heldout']['holes']['all']:.3f} | {r['step_s']:.2f} |")
+            lines += ["", "Step times in this table follow the machine's load at the time of each run (other sessions "
+                      "finished while the sweep ran), not the budget. With a fixed step count, larger budgets are "
+                      "less trained per splat, which is why the curve can turn down at the top."]
             if len(rows) >= 3:
                 lines += ["", f"Scene's measured need: **{need:,} splats** (smallest budget within 0.5 dB of the "
                           f"best, {best:.2f} dB), at this resolution and step count; the sweep stopped at "
