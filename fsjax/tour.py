@@ -358,8 +358,8 @@ def all_sections() -> list[Callable[[Path, bool], Section]]:
 
 
 #: tour modules after the 2-D basics, in report order
-_TOUR_MODULES = ("tour_inspection", "tour_metrology", "tour_points", "tour_registration", "tour_measure3d",
-                 "tour_tomography", "tour_calibration", "tour_evolve")
+_TOUR_MODULES = ("tour_inspection", "tour_metrology", "tour_points", "tour_registration", "tour_render",
+                 "tour_measure3d", "tour_tomography", "tour_calibration", "tour_splat", "tour_evolve")
 
 
 def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=print) -> list[Section]:
