@@ -70,16 +70,30 @@ def test_run_errors(png, capsys):
     assert "did you mean 'gaussian'" in capsys.readouterr().err
 
 
-@pytest.mark.slow
 def test_tour_quick(tmp_path):
-    from fsjax.tour import run_tour
+    """``run_tour`` end to end (report and figures) on the 2-D sections.
 
-    secs = run_tour(tmp_path, quick=True, log=lambda *a, **k: None)
+    The sections of the other tour modules each run in quick mode in their own test file
+    (``tests/test_<module>.py``); running them all again here doubled the suite's longest test.
+    """
+    from pathlib import Path
+
+    from fsjax import tour, tour_inspection
+
+    todo = list(tour.SECTIONS) + list(tour_inspection.SECTIONS)
+    secs = tour.run_tour(tmp_path, quick=True, sections=todo, log=lambda *a, **k: None)
     report = (tmp_path / "report.md").read_text()
+    assert len(secs) == len(todo) >= 10
     for s in secs:
         print(f"{s.title}: fsjax {s.fsjax_figure} | null {s.null_figure}")
         assert s.beats_null, s.title
         assert s.title in report
         if s.figure:
             assert (tmp_path / s.figure).stat().st_size > 0
-    assert len(secs) >= 8
+    # every other tour module's sections are part of the full tour and have their own test file
+    tests_dir = Path(__file__).parent
+    names = [f.__name__ for f in tour.all_sections()]
+    assert names[: len(todo)] == [f.__name__ for f in todo]
+    for mod in tour._TOUR_MODULES:
+        if mod != "tour_inspection":
+            assert (tests_dir / f"test_{mod}.py").exists(), f"no quick-mode test for fsjax.{mod}"

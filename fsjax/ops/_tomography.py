@@ -296,7 +296,10 @@ def rotation_center(sino: Image, /, *, angle_range_deg: float = 180.0) -> Featur
 
     The centroid of every projection traces ``s(theta) = c + A cos(theta) + B sin(theta)``
     (the object's centre of mass circling the axis); a linear least-squares fit over all
-    angles gives ``c``. Exact for noise-free data whatever the object; needs angles
+    angles gives ``c``. Exact for exact (continuous) projections of any object; with the
+    bilinear-sampled :func:`radon_transform` the centroid of each projection carries a
+    small interpolation error (3e-4 px on the example below, <= 0.01 px on the noisy
+    phantom of the tests). Needs angles
     spanning a non-degenerate arc (more than 3 angles over at least ~30 deg). A projection
     with zero or negative total mass, or a degenerate fit, gives NaN.
 
@@ -313,7 +316,7 @@ def rotation_center(sino: Image, /, *, angle_range_deg: float = 180.0) -> Featur
         >>> n = 33
         >>> img = np.zeros((n, n)); img[10:14, 20:25] = 1.0  # off-centre block
         >>> sino = fsjax.ops.radon_transform(fsjax.Image(jnp.asarray(img)), n_angles=90, circle=True)
-        >>> abs(float(fsjax.ops.rotation_center(sino).value) - n // 2) < 1e-9
+        >>> abs(float(fsjax.ops.rotation_center(sino).value) - n // 2) < 1e-3
         True
     """
     op = "rotation_center"
