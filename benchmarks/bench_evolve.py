@@ -239,8 +239,10 @@ def main(argv=None) -> int:
              f"Workload: population {a.pop} random genomes of the {a.stages}-stage `Image -> Image` skeleton "
              f"(vocabulary: identity + {len(sk.vocabs[0]) - 1} ops: {', '.join(sk.vocabs[0][1:])}), "
              f"{a.images} denoising images {a.size} x {a.size}, float32, PSNR fitness computed in the same call.",
-             "", f"Machine: {machine_info().get('cpu', '')}; load average before {load0}, after {load_average()} "
-             "(a shared 2-core machine: absolute times are inflated, ratios are the figure).", "",
+             "", f"Machine: {machine_info().get('cpu', '')}, 2 cores; load average (1, 5, 15 min) before "
+             f"{', '.join(f'{x:.1f}' for x in load0)}, after {', '.join(f'{x:.1f}' for x in load_average())} "
+             + ("(the machine was shared with other work: absolute times are inflated, ratios are the figure)."
+                if max(load0[0], load_average()[0]) > 2.5 else "(no other work on the machine)."), "",
              (f"(a), (b) and the vmap variant were timed on the first {n_sub} genomes and scaled by "
               f"{scale:g} to the population (their cost is linear in the number of genomes; the one-call "
               f"population is timed whole). " if scale > 1 else "")
