@@ -85,7 +85,10 @@ def _run(data, key, budget, iters, cap, dist_weight=0.0, dist_norm=False):
 def stage_main(args):
     data = _data(args.size, args.views)
     res, r = _run(data, 0, args.main_budget, args.main_iters, args.capacity)
-    res.update(capacity=args.capacity, load=os.getloadavg()[0])
+    res.update(capacity=args.capacity, load=os.getloadavg()[0],
+               command=f"python tools/splat_experiments.py --stages main --main-budget {args.main_budget} "
+                       f"--main-iters {args.main_iters} --capacity {args.capacity} --size {args.size} "
+                       f"--views {args.views}")
     print("main", res, flush=True)
     _save(f"main_{args.size}", res)
     from fsjax.io_splat import write_splat
@@ -199,7 +202,9 @@ def write_docs():
                       + (f", tile capacity {m['capacity']}" if "capacity" in m else "")
                       + (f", max training overflow {m['train_overflow_max']} splat-tile pairs"
                          if "train_overflow_max" in m else "")
-                      + (f", load average {m['load']:.1f}" if "load" in m else "") + ".", "",
+                      + (f", load average {m['load']:.1f}" if "load" in m else "") + "."
+                      + (f" {m['note']}" if "note" in m else "")
+                      + (f" Command: `{m['command']}`." if "command" in m else ""), "",
                       "| metric | held-out | train views |", "|---|---|---|",
                       f"| PSNR (dB) | {h['psnr']:.2f} | {m['train_psnr']:.2f} |",
                       f"| SSIM | {h['ssim']:.3f} | |",
