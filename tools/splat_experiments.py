@@ -264,10 +264,11 @@ def write_docs():
             if len(clean) >= 3:
                 best = max(pp for _, pp in clean)
                 need = min(bb for bb, pp in clean if pp >= best - 0.5)
-                if need == max(bb for bb, _ in clean) and len(clean) < len(rows):
-                    lines += ["", f"Scene's need: **not determined** by this sweep — PSNR is still within 0.5 dB "
-                              f"of its best only at the largest budget that rendered without overflow "
-                              f"({need:,}); larger budgets need a larger tile capacity.", ""]
+                if need == max(bb for bb, _ in clean):
+                    lines += ["", f"Scene's need: **at least {need:,} splats**, not bounded by this sweep — PSNR "
+                              f"is within 0.5 dB of its best only at the largest budget that was swept and "
+                              f"rendered without overflow ({need:,}); the curve has not flattened, so larger "
+                              "budgets (with a larger tile capacity) must be swept to bound it.", ""]
                 else:
                     lines += ["", f"Scene's measured need: **{need:,} splats** (smallest budget within 0.5 dB of "
                               f"the best valid row, {best:.2f} dB), at this resolution and step count.", ""]
