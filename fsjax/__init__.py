@@ -19,6 +19,7 @@ from .registry import LinKnob as LinKnob
 from .registry import LogKnob as LogKnob
 from .registry import OpSpec as OpSpec
 from .registry import UnknownOpError as UnknownOpError
+from .registry import compiled_calls as compiled_calls
 from .registry import families as families
 from .registry import get_op as get_op
 from .registry import list_ops as list_ops

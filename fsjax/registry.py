@@ -27,6 +27,7 @@ maximum support and masks.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import difflib
 import functools
@@ -51,6 +52,7 @@ __all__ = [
     "list_ops",
     "families",
     "UnknownOpError",
+    "compiled_calls",
 ]
 
 
@@ -312,7 +314,7 @@ def register(
                         f"{sort.__name__}; ops take one instance, batch with jax.vmap"
                     )
                 arg.check(op=opname, arg=pname)
-            return fn(*args, **kwargs)
+            return _call(opname, fn, args, kwargs)
 
         spec = OpSpec(
             name=opname,
@@ -334,6 +336,93 @@ def register(
         return wrapper
 
     return deco
+
+
+# ---------------------------------------------------------------------------
+# Compiled eager calls
+# ---------------------------------------------------------------------------
+
+# By default an op called outside any transformation runs eagerly, primitive by primitive,
+# and every check in its body sees concrete values. Inside ``compiled_calls()`` such a call
+# runs as one compiled XLA program instead (cached per op, input shapes and static
+# parameters): op-by-op dispatch compiles one small program per primitive, which for a
+# one-off call on a small input costs far more than the op's own work. The compiled path
+# is taken only when every keyword parameter is a plain hashable Python value (number,
+# str, None, bool, or a tuple of those), which becomes a static argument, so the op's
+# checks on its parameters run exactly as in an eager call; any array or pytree
+# parameter, any traced value, or an op that needs concrete input values (it raises a
+# tracer-conversion error when traced) takes the eager call. What is lost: checks in an
+# op's body on the *values* of its inputs (beyond the sort and NaN checks every call
+# makes first) are skipped, as they are under ``jit``.
+_SCALARS = (bool, int, float, complex, str, type(None))
+_COMPILED: dict[str, Callable] = {}
+_NEEDS_EAGER: set[tuple] = set()
+_MODE = {"compiled": False}
+
+
+@contextlib.contextmanager
+def compiled_calls(enabled: bool = True):
+    """Context manager: ops called outside ``jit`` run as one compiled program each.
+
+    Within ``with fsjax.compiled_calls():`` a direct op call such as
+    ``fsjax.ops.gaussian(img, sigma=2.0)`` is compiled whole (and cached) instead of being
+    dispatched primitive by primitive. Results are those of ``jax.jit`` of the op.
+    Keyword parameters become static (a new value compiles a new program); calls with
+    array-valued parameters or traced values are unchanged. Checks that an op makes on
+    the values of its inputs are skipped, as under ``jit``.
+
+    Example:
+        >>> img = fsjax.Image(jnp.zeros((8, 8)).at[4, 4].set(1.0))
+        >>> with fsjax.compiled_calls():
+        ...     y = fsjax.ops.gaussian(img, sigma=1.0)
+        >>> bool(jnp.allclose(y.data, fsjax.ops.gaussian(img, sigma=1.0).data))
+        True
+    """
+    old = _MODE["compiled"]
+    _MODE["compiled"] = bool(enabled)
+    try:
+        yield
+    finally:
+        _MODE["compiled"] = old
+
+
+def _static_ok(v) -> bool:
+    if isinstance(v, _SCALARS):
+        return True
+    if isinstance(v, tuple):
+        return all(_static_ok(x) for x in v)
+    return False
+
+
+def _any_tracer(tree) -> bool:
+    import jax
+
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
+
+
+def _call(opname: str, fn: Callable, args: tuple, kwargs: dict):
+    if not _MODE["compiled"] or not all(_static_ok(v) for v in kwargs.values()) or _any_tracer(args):
+        return fn(*args, **kwargs)
+    import jax
+
+    static = tuple(sorted(kwargs.items()))
+    key = (opname, static)
+    if key in _NEEDS_EAGER:
+        return fn(*args, **kwargs)
+    jf = _COMPILED.get(opname)
+    if jf is None:
+
+        def run(args, static):
+            return fn(*args, **dict(static))
+
+        jf = _COMPILED[opname] = jax.jit(run, static_argnums=1)
+    try:
+        return jf(args, static)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+            jax.errors.TracerBoolConversionError, jax.errors.TracerIntegerConversionError):
+        # the op inspects concrete input values (data-dependent shapes or checks)
+        _NEEDS_EAGER.add(key)
+        return fn(*args, **kwargs)
 
 
 def _ensure_loaded() -> None:
