@@ -9,8 +9,12 @@ from __future__ import annotations
 
 import functools
 
+import pytest
+
 from fsjax import tour_measure3d as T
 from fsjax.tour import Section
+
+pytestmark = pytest.mark.slow  # tour quick mode repeats measurements tested elsewhere; runs last
 
 
 def _check_section(sec, tmp_path):

@@ -10,6 +10,8 @@ import pytest
 from fsjax import tour_render as T
 from fsjax.tour import Section
 
+pytestmark = pytest.mark.slow  # tour quick mode repeats measurements tested elsewhere; runs last
+
 
 def test_channels_depth_edges_from_sobel():
     r = T.measure_channels(96)

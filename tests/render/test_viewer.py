@@ -53,6 +53,7 @@ def _shoot(tmp_path, html, query, name):
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium binary (CI installs Debian's chromium)")
+@pytest.mark.slow  # heavy (20-60 s); slow suites run last
 def test_viewer_ground_plane_low_near_plane(tmp_path):
     g, cam = ground_plane(), low_camera()
     near = 0.3  # the near plane reaches below the camera's altitude (0.12) into the ground
