@@ -85,3 +85,34 @@ def test_register_rules():
         @register(family="t", takes=fsjax.Image, gives=fsjax.Image)
         def gaussian(img):
             """Doc."""
+
+
+def test_compiled_calls_compiles_whole_and_matches_eager():
+    import doctest
+
+    from fsjax import registry as R
+
+    # the docstring example runs and holds
+    finder = doctest.DocTestFinder()
+    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    tests = finder.find(R.compiled_calls, globs={"fsjax": fsjax, "jnp": jnp, "np": np})
+    for t in tests:
+        runner.run(t)
+    assert runner.summarize(verbose=False).failed == 0 and sum(len(t.examples) for t in tests) >= 3
+
+    img = fsjax.Image(jnp.arange(64.0).reshape(8, 8) / 64.0)
+    eager = fsjax.ops.gaussian(img, sigma=1.5)
+    R._COMPILED.pop("gaussian", None)
+    with fsjax.compiled_calls():
+        y = fsjax.ops.gaussian(img, sigma=1.5)
+        fsjax.ops.gaussian(img, sigma=1.5)
+        # an array-valued parameter keeps the eager call (no static key possible)
+        z = fsjax.ops.gaussian(img, sigma=jnp.asarray(1.5))
+    assert not R._MODE["compiled"]  # restored on exit
+    jf = R._COMPILED["gaussian"]
+    assert jf._cache_size() == 1  # one program for the two equal calls
+    np.testing.assert_allclose(np.asarray(y.data), np.asarray(eager.data), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(z.data), np.asarray(eager.data), rtol=0, atol=1e-12)
+    # bad parameters are still refused, naming the op and the argument
+    with fsjax.compiled_calls(), pytest.raises(ValueError, match="sigma"):
+        fsjax.ops.gaussian(img, sigma=-1.0)
