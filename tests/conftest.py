@@ -24,6 +24,14 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
+# A clean-clone run hung once here inside XLA:CPU: the main thread waited forever in
+# BlockUntilReady on a vmapped model-selection fit while every XLA thread sat idle (a lost
+# completion notification; seen with py-spy, test_primitives3d bic_200). Synchronous CPU
+# dispatch runs each computation on the calling thread, removing that hand-off; it is a
+# mitigation, not a proven fix. A hang that still happens is killed by pytest-timeout's
+# thread method (pyproject: timeout_method = "thread"), which dumps every stack and fails
+# the test instead of stalling the run.
+jax.config.update("jax_cpu_enable_async_dispatch", False)
 
 
 # Every executable XLA:CPU compiles holds a few memory mappings (about 3 each) until it
