@@ -26,9 +26,13 @@ because it is a data-dependent graph search):
    breadth-first: a node predicts its four neighbours by linear extrapolation through the
    opposite neighbour when known (which follows perspective) or by the local lattice
    vectors, and accepts the nearest unused candidate within ``0.3`` of the local spacing.
-   The grown lattice must contain a fully populated ``nx x ny`` window; of several, the one
-   with the largest total response wins (this drops the weaker border L-corners).
-   Nothing found gives ``found=False`` with a reason and NaN corners: never a partial grid.
+   The grown lattice must contain a fully populated ``nx x ny`` window that is a whole board:
+   its ``(nx + 1) x (ny + 1)`` squares alternate light/dark and the squares one step outside
+   it do not continue the checker (:func:`_board_check`). A miscounted pattern therefore fails
+   like ``cv2.findChessboardCorners`` does: a window inside a larger board, or one that takes
+   in the L-shaped corners of the board's border, is refused. Of several whole-board windows
+   the one with the largest total response wins. Nothing found gives ``found=False`` with a
+   reason and NaN corners: never a partial grid.
 3. **Sub-pixel refinement** by the gradient-orthogonality condition (Forstner and
    Gulch 1987; the criterion of OpenCV's ``cornerSubPix``): for the true corner ``q`` and
    every pixel ``p`` near it, the image gradient ``g_p`` is orthogonal to ``p - q`` (either
@@ -288,10 +292,11 @@ def _grow(p: np.ndarray, s: np.ndarray, seed: int, tol: float):
     return grid
 
 
-def _best_window(grid: dict, s: np.ndarray, nx: int, ny: int):
+def _windows(grid: dict, s: np.ndarray, nx: int, ny: int) -> list:
+    """Every fully populated ``nx x ny`` window of the grown lattice, largest total response first."""
     ii = np.array([k[0] for k in grid])
     jj = np.array([k[1] for k in grid])
-    best = None
+    out = []
     for (wi, wj, swap) in ((nx, ny, False), (ny, nx, True)):
         for i0 in range(ii.min(), ii.max() - wi + 2):
             for j0 in range(jj.min(), jj.max() - wj + 2):
@@ -299,10 +304,75 @@ def _best_window(grid: dict, s: np.ndarray, nx: int, ny: int):
                 if any(v is None for row in idx for v in row):
                     continue
                 idx = np.array(idx)  # (wj, wi): rows along j
-                score = float(s[idx].sum())
-                if best is None or score > best[0]:
-                    best = (score, idx, swap)
-    return best
+                out.append((float(s[idx].sum()), idx, swap))
+    out.sort(key=lambda w: -w[0])
+    return out
+
+
+def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """DLT homography ``src -> dst`` (both ``(N, 2)``, N >= 4), Hartley-normalised."""
+    def norm(x):
+        c = x.mean(0)
+        sc = np.sqrt(2.0) / max(float(np.linalg.norm(x - c, axis=1).mean()), 1e-300)
+        return np.array([[sc, 0, -sc * c[0]], [0, sc, -sc * c[1]], [0, 0, 1.0]])
+
+    ts, td = norm(src), norm(dst)
+    a = np.c_[src, np.ones(len(src))] @ ts.T
+    b = np.c_[dst, np.ones(len(dst))] @ td.T
+    z = np.zeros((len(a), 3))
+    rows = np.concatenate([np.c_[a, z, -b[:, :1] * a], np.c_[z, a, -b[:, 1:2] * a]])
+    h = np.linalg.svd(rows)[2][-1].reshape(3, 3)
+    return np.linalg.inv(td) @ h @ ts
+
+
+# Board-size check. A pattern counts inner corners, so a board of nx x ny inner corners is a
+# checker of (nx + 1) x (ny + 1) alternating squares, and the squares one step further out do
+# not continue it (margin, background). A lattice window is accepted only when both hold, so a
+# miscounted pattern fails as it does in ``cv2.findChessboardCorners``: a window inside a larger
+# board fails the second test, a window that takes in the L-shaped corners of the board's border
+# fails the first. Square intensities are sampled at the centres predicted by a homography fitted
+# to the window's corners (mean of 5 bilinear samples per square; NaN off the image); the tests
+# compare adjacent squares relative to the window's own median contrast, so they do not depend
+# on the lighting level or the image's value scale.
+_CELL_SAMPLES = np.array([[0.0, 0.0], [0.2, 0.2], [-0.2, 0.2], [0.2, -0.2], [-0.2, -0.2]])
+_PAIR_MARGIN = 0.3  # adjacent light/dark squares must differ by this fraction of the median contrast
+_CONTINUE_FRAC = 0.75  # an outer strip alternating in this fraction of its pairs continues the board
+
+
+def _board_check(a: np.ndarray, corners: np.ndarray, nx: int, ny: int) -> str:
+    """``""`` when the ordered coarse ``(nx * ny, 2)`` corners bound a whole board, else why not."""
+    from scipy import ndimage as ndi
+
+    H = _homography(board_points((nx, ny))[:, :2], corners)
+    jj, ii = np.mgrid[-2:ny + 1, -2:nx + 1]  # square (i, j) has centre (i + 0.5, j + 0.5)
+    b = np.stack([ii, jj], -1)[..., None, :] + 0.5 + _CELL_SAMPLES
+    p = np.c_[b.reshape(-1, 2), np.ones(b.size // 2)] @ H.T
+    val = ndi.map_coordinates(a, [p[:, 1] / p[:, 2], p[:, 0] / p[:, 2]], order=1, mode="constant", cval=np.nan)
+    c = val.reshape(b.shape[:-1]).mean(-1)  # (ny + 3, nx + 3): the window's squares and one ring
+    par = np.where((ii + jj) % 2 == 0, 1.0, -1.0)
+    eh = (c[:, :-1] - c[:, 1:]) * par[:, :-1]  # > 0 where the even-parity square is the lighter
+    ev = (c[:-1, :] - c[1:, :]) * par[:-1, :]
+    inside = np.r_[eh[1:ny + 2, 1:nx + 1].ravel(), ev[1:ny + 1, 1:nx + 2].ravel()]
+    orient = np.sign(np.nanmedian(inside))
+    contrast = float(np.nanmedian(inside * orient)) if np.isfinite(orient) else np.nan
+    if not contrast > 0:
+        return f"no checker contrast inside the {nx}x{ny} window"
+    thr = _PAIR_MARGIN * contrast
+    bad = int(np.sum(~(inside * orient > thr)))
+    if bad:
+        return (f"the {nx}x{ny} window is not a checker of {nx + 1}x{ny + 1} alternating squares "
+                f"({bad} of {inside.size} adjacent pairs do not alternate): pattern larger than the board?")
+    strips = {
+        "left": np.r_[eh[1:ny + 2, 0], ev[1:ny + 1, 0]],
+        "right": np.r_[eh[1:ny + 2, nx + 1], ev[1:ny + 1, nx + 2]],
+        "top": np.r_[ev[0, 1:nx + 2], eh[0, 1:nx + 1]],
+        "bottom": np.r_[ev[ny + 1, 1:nx + 2], eh[ny + 2, 1:nx + 1]],
+    }
+    more = [k for k, e in strips.items() if np.mean(e * orient > thr) >= _CONTINUE_FRAC]
+    if more:
+        return (f"the board continues beyond the {nx}x{ny} window ({', '.join(more)} side): "
+                "pattern smaller than the board")
+    return ""
 
 
 def _order(idx: np.ndarray, swap: bool, p: np.ndarray, nx: int, ny: int) -> np.ndarray:
@@ -339,7 +409,10 @@ def find_chessboard(img, pattern=(9, 6), *, sigma: float = 2.0, nms: int = 4, re
 
     Returns:
       :class:`ChessboardCorners`; ``found=False`` with a ``reason`` and NaN corners when no
-      complete grid is found or a corner fails to refine.
+      complete grid is found, when ``pattern`` does not match the board (a board with more
+      or fewer inner corners than ``pattern``, as OpenCV refuses it), or a corner fails to
+      refine. ``pattern`` and its transpose are the same board (the ordering follows the
+      image, see the module notes).
 
     Matches ``cv2.findChessboardCorners`` + ``cv2.cornerSubPix`` (winSize 11) on the bundled
     photographs to a median of about 0.02 px (``tests/fit/test_chessboard.py``).
@@ -375,18 +448,26 @@ def find_chessboard(img, pattern=(9, 6), *, sigma: float = 2.0, nms: int = 4, re
     p, s = _candidates(resp, int(nms), float(rel_threshold), int(capacity))
     if len(p) < n:
         return fail(f"too few saddle candidates ({len(p)} < {n})", len(p))
-    best = None
+    windows, why = None, ""
     for seed in range(min(int(max_seeds), len(p))):
         grid = _grow(p, s, seed, float(tol))
         if grid is None or len(grid) < n:
             continue
-        w = _best_window(grid, s, nx, ny)
-        if w is not None:
-            best = w
+        windows = _windows(grid, s, nx, ny)
+        if windows:
             break
-    if best is None:
+    if not windows:
         return fail(f"no complete {nx}x{ny} grid among {len(p)} candidates", len(p))
-    coarse = _order(best[1], best[2], p, nx, ny)
+    coarse = None
+    for w in windows:
+        c = _order(w[1], w[2], p, nx, ny)
+        bad = _board_check(a, c, nx, ny)
+        if not bad:
+            coarse = c
+            break
+        why = why or bad  # the reason of the strongest window
+    if coarse is None:
+        return fail(f"pattern {nx}x{ny} does not match the board: {why}", len(p))
     q, it = refine_corners(a, coarse, win=win)
     if not bool(jnp.all(jnp.isfinite(q))):
         return fail("sub-pixel refinement failed at some corner", len(p))

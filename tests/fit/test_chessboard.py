@@ -96,6 +96,25 @@ def test_not_found_fails_closed():
     assert not bool(r3.found) and np.all(np.isnan(np.asarray(r3.corners)))
 
 
+def test_wrong_pattern_size_refused():
+    """Issue 20 item 2: on left01 (9x6 inner corners) a miscounted pattern is refused, as OpenCV does.
+
+    (7, 7) and (10, 7) would take in the L-shaped corners at the board's border; (5, 4) and (8, 5)
+    are windows inside the board. Before the board-size check all four returned found=True.
+    The right size on all 14 photographs is asserted in test_real_photographs_vs_opencv.
+    """
+    from fsjax.data.chessboard import chessboard_images
+
+    img = chessboard_images(as_float=False)[0]
+    for pat in [(7, 7), (5, 4), (8, 5), (10, 7)]:
+        r = find_chessboard(img, pat)
+        print(f"{pat} on a 9x6 board -> found={bool(r.found)}: {r.reason}")
+        assert not bool(r.found) and "does not match the board" in r.reason
+        assert np.all(np.isnan(np.asarray(r.corners)))
+    for pat in [(9, 6), (6, 9)]:  # the right board either way round
+        assert bool(find_chessboard(img, pat).found)
+
+
 def test_refine_exact_on_symmetric_corner():
     v, u = np.mgrid[0:41, 0:41].astype(float)
     img = 0.5 + 0.4 * np.tanh(0.5 * (u - 20.3)) * np.tanh(0.5 * (v - 19.6))
