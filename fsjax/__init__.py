@@ -9,6 +9,8 @@ from . import data as data
 from . import fit as fit
 from . import ops as ops
 from . import render as render
+from ._cache import compile_cache_dir as compile_cache_dir
+from ._cache import enable_compile_cache as enable_compile_cache
 from .pipeline import Pipeline as Pipeline
 from .pipeline import PipelineTypeError as PipelineTypeError
 from .pipeline import apply as apply

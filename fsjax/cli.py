@@ -10,9 +10,13 @@
     search a pipeline for a synthetic problem (denoise, binarize, edges, count):
     baselines first, then the GA per seed; writes ``DIR/champion.json`` (by op
     names and knobs), ``DIR/baselines.md`` and ``DIR/log.csv``.
-``fsjax tour --out DIR [--quick]``
+``fsjax tour --out DIR [--quick] [--sections a,b] [--list]``
     the library's main job: a scored tour of what fsjax measures; writes
-    ``DIR/report.md`` and figures.
+    ``DIR/report.md`` and figures; a running section reports progress on stderr.
+
+``tour``, ``run`` and ``evolve`` keep compiled programs in JAX's persistent compilation
+cache (``fsjax.enable_compile_cache``: the user's cache directory, ``FSJAX_CACHE_DIR``
+overrides it, ``FSJAX_CACHE_DIR=off`` disables it), so a second run skips compilation.
 """
 
 from __future__ import annotations
@@ -136,9 +140,15 @@ def _cmd_evolve(args: argparse.Namespace) -> int:
 
 
 def _cmd_tour(args: argparse.Namespace) -> int:
-    from .tour import run_tour
+    from .tour import run_tour, section_names
 
-    run_tour(args.out, quick=args.quick)
+    if args.list:
+        print("\n".join(section_names()))
+        return 0
+    if not args.out:
+        raise ValueError("argument '--out' is required (the directory for report.md and figures)")
+    sections = [v.strip() for v in args.sections.split(",") if v.strip()] if args.sections else None
+    run_tour(args.out, quick=args.quick, sections=sections)
     return 0
 
 
@@ -175,11 +185,18 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_evolve)
 
     p = sub.add_parser("tour", help="run the scored tour and write DIR/report.md")
-    p.add_argument("--out", required=True)
-    p.add_argument("--quick", action="store_true", help="smaller inputs (for tests)")
+    p.add_argument("--out", help="output directory (report.md and figures)")
+    p.add_argument("--quick", action="store_true", help="smaller inputs (the form CI runs)")
+    p.add_argument("--sections", help="comma-separated section names (default: all; see --list)")
+    p.add_argument("--list", action="store_true", help="list the section names and exit")
     p.set_defaults(func=_cmd_tour)
 
     args = parser.parse_args(argv)
+    if args.cmd in ("tour", "run", "evolve"):
+        # compiled programs persist across runs (FSJAX_CACHE_DIR overrides, =off disables)
+        from ._cache import enable_compile_cache
+
+        enable_compile_cache()
     try:
         return args.func(args)
     except (TypeError, ValueError, KeyError, FileNotFoundError) as e:

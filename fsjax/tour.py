@@ -362,22 +362,95 @@ _TOUR_MODULES = ("tour_inspection", "tour_metrology", "tour_points", "tour_regis
                  "tour_measure3d", "tour_tomography", "tour_calibration", "tour_splat", "tour_evolve")
 
 
-def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=print) -> list[Section]:
-    """Run every section, write figures and ``report.md`` into ``out_dir``; return the sections."""
+class _Heartbeat:
+    """Prints what a running tour section is doing every ``every`` seconds, so a long section
+    (compiling, fitting) is never mistaken for a hang. Sections name their current step with
+    :func:`step`; the heartbeat line shows it with the elapsed time."""
+
+    def __init__(self, every: float = 10.0, stream=None):
+        import sys
+        import threading
+
+        self.every = every
+        self.stream = stream if stream is not None else sys.stderr
+        self.label = ""
+        self.section = ""
+        self.t0 = time.perf_counter()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self):
+        while not self._stop.wait(self.every):
+            what = f": {self.label}" if self.label else ""
+            print(f"    ... {self.section} still running ({time.perf_counter() - self.t0:.0f} s){what}",
+                  file=self.stream, flush=True)
+
+    def start(self, section: str):
+        self.section, self.label, self.t0 = section, "", time.perf_counter()
+        if not self._thread.is_alive():
+            self._thread.start()
+
+    def stop(self):
+        self._stop.set()
+
+
+_HEARTBEAT: _Heartbeat | None = None
+
+
+def step(label: str) -> None:
+    """Name what the running tour section is doing (shown by the progress heartbeat)."""
+    if _HEARTBEAT is not None:
+        _HEARTBEAT.label = label
+
+
+def section_names() -> list[str]:
+    """The names of every tour section, in report order (``fsjax tour --sections`` takes these)."""
+    return [fn.__name__ for fn in all_sections()]
+
+
+def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=print,
+             heartbeat_s: float = 10.0) -> list[Section]:
+    """Run every section, write figures and ``report.md`` into ``out_dir``; return the sections.
+
+    Args:
+        out_dir: output directory (created).
+        quick: smaller inputs (the form ``.ci/run`` and the tests use).
+        sections: the section functions to run, or their names (see :func:`section_names`);
+            ``None`` runs them all.
+        log: ``print`` for the console progress lines, or a callable taking a section name.
+        heartbeat_s: while a section runs, a line on stderr every this many seconds says it
+            is still running and what it is doing (0 disables).
+    """
+    global _HEARTBEAT
     jax.config.update("jax_enable_x64", True)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     results: list[Section] = []
     t_all = time.perf_counter()
     todo = all_sections() if sections is None else sections
-    for i, fn in enumerate(todo):
-        t0 = time.perf_counter()
-        log(f"[{i + 1}/{len(todo)}] {fn.__name__} ...", end="", flush=True) if log is print else log(fn.__name__)
-        sec = fn(out, quick)
-        sec.seconds = time.perf_counter() - t0
-        results.append(sec)
-        if log is print:
-            print(f" {sec.seconds:.1f} s, beats null: {sec.beats_null}")
+    if any(isinstance(fn, str) for fn in todo):
+        by_name = {fn.__name__: fn for fn in all_sections()}
+        unknown = [fn for fn in todo if isinstance(fn, str) and fn not in by_name]
+        if unknown:
+            raise ValueError(f"run_tour: unknown section(s) {unknown}; known: {sorted(by_name)}")
+        todo = [by_name[fn] if isinstance(fn, str) else fn for fn in todo]
+    hb = _Heartbeat(heartbeat_s) if heartbeat_s > 0 and log is print else None
+    _HEARTBEAT = hb
+    try:
+        for i, fn in enumerate(todo):
+            t0 = time.perf_counter()
+            log(f"[{i + 1}/{len(todo)}] {fn.__name__} ...", end="", flush=True) if log is print else log(fn.__name__)
+            if hb is not None:
+                hb.start(fn.__name__)
+            sec = fn(out, quick)
+            sec.seconds = time.perf_counter() - t0
+            results.append(sec)
+            if log is print:
+                print(f" {sec.seconds:.1f} s, beats null: {sec.beats_null}", flush=True)
+    finally:
+        if hb is not None:
+            hb.stop()
+        _HEARTBEAT = None
     total = time.perf_counter() - t_all
     lines = [
         "# fsjax tour",

@@ -75,6 +75,11 @@ def pytest_runtest_logreport(report):
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    if getattr(config, "_fsjax_cache", ""):
+        terminalreporter.write_line(
+            f"compile cache ({'shared, per run' if getattr(config, '_fsjax_cache_own', False) else config._fsjax_cache}): "
+            f"{_SAVED['hits']} programs loaded, {_SAVED['misses']} compiled and offered, "
+            f"{_SAVED['saved_s']:.0f} s of compilation saved")
     if not _FIGURES:
         return
     terminalreporter.section("measured figures (printed by passing tests)")
@@ -101,16 +106,83 @@ def _budget_s() -> float:
         return 3600.0
 
 
+# ---------------------------------------------------------------------------
+# One persistent compilation cache shared by the xdist workers of a run. A program compiled
+# by one worker (or by the same worker again after the map-count release above, or from a
+# fresh ``jax.jit(lambda ...)`` that traces to the same program in another test) is loaded
+# from disk instead of compiled. ``FSJAX_CACHE_DIR`` set by the caller is used as is (a
+# developer's warm re-run; ``off`` disables it); otherwise each run gets its own new
+# directory (a cold cache, as CI has), removed at the end of the run. The compile time the
+# cache saved is printed in the summary.
+# ---------------------------------------------------------------------------
+_SAVED = {"hits": 0, "misses": 0, "saved_s": 0.0}
+
+
+def _count_cache_event(name, **kw):
+    if name == "/jax/compilation_cache/cache_hits":
+        _SAVED["hits"] += 1
+    elif name == "/jax/compilation_cache/cache_misses":
+        _SAVED["misses"] += 1
+
+
+def _count_cache_saving(name, secs, **kw):
+    if name == "/jax/compilation_cache/compile_time_saved_sec":
+        _SAVED["saved_s"] += float(secs)
+
+
+def _enable_test_cache(path):
+    import fsjax
+
+    if path:
+        fsjax.enable_compile_cache(path, min_compile_time_s=0.05)
+        jax.monitoring.register_event_listener(_count_cache_event)
+        jax.monitoring.register_event_duration_secs_listener(_count_cache_saving)
+
+
 def pytest_configure(config):
     if not hasattr(config, "workerinput"):  # controller (or a run without xdist)
         config._fsjax_t0 = time.time()
+        env = os.environ.get("FSJAX_CACHE_DIR")
+        if env is not None:
+            config._fsjax_cache = "" if env.strip().lower() in {"off", "0", "none", "false", "no", ""} else env
+            config._fsjax_cache_own = False
+        else:
+            import tempfile
+
+            config._fsjax_cache = tempfile.mkdtemp(prefix="fsjax-test-xla-")
+            config._fsjax_cache_own = True
     else:
         config._fsjax_t0 = float(config.workerinput.get("fsjax_t0", time.time()))
+        config._fsjax_cache = config.workerinput.get("fsjax_cache", "")
+        config._fsjax_cache_own = False
+    _enable_test_cache(config._fsjax_cache)
+
+
+def pytest_unconfigure(config):
+    if getattr(config, "_fsjax_cache_own", False):
+        import shutil
+
+        shutil.rmtree(config._fsjax_cache, ignore_errors=True)
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_configure_node(node):  # xdist hook, called on the controller for each worker
     node.workerinput["fsjax_t0"] = node.config._fsjax_t0
+    node.workerinput["fsjax_cache"] = node.config._fsjax_cache
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):  # xdist: collect each worker's cache figures
+    out = getattr(node, "workeroutput", {}) or {}
+    for k in _SAVED:
+        _SAVED[k] += out.get("fsjax_cache_" + k, 0)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    wo = getattr(session.config, "workeroutput", None)
+    if wo is not None:  # a worker: hand its figures to the controller
+        for k, v in _SAVED.items():
+            wo["fsjax_cache_" + k] = v
 
 
 def pytest_collection_modifyitems(config, items):
