@@ -45,7 +45,7 @@ import optax
 import optimistix as optx
 
 from ..render.camera import intrinsics_from_fov, look_at
-from ..render.splat import render_splats, rgb_to_sh0
+from ..render.splat import _bucket, count_splat_pairs, render_splats, rgb_to_sh0
 from ..types import Camera, Gaussians, Mesh
 
 __all__ = ["MultiViewData", "mesh_views", "ssim_color", "psnr", "coverage_holes", "init_from_mesh",
@@ -225,8 +225,10 @@ def init_from_mesh(key, data: MultiViewData, n_init: int, max_splats: int, *, dt
 class SplatTrainResult(eqx.Module):
     """Trained ``gaussians``; per-step ``loss``; ``n_splats`` after each densification;
     ``overflow`` per step (splat-tile pairs dropped); ``step_seconds`` median wall time of a
-    step (compile excluded); ``compile_seconds``; ``converged`` (the optimiser's Cauchy test
-    never fires in a fixed-length run, so this reports whether the final loss is finite)."""
+    step (steps that compiled excluded); ``compile_seconds`` (first step plus every step that
+    grew the pair buffer); ``converged`` (the optimiser's Cauchy test never fires in a
+    fixed-length run, so this reports whether the final loss is finite); ``pairs`` the
+    rasteriser's (splat, tile) pair demand per step; ``max_pairs`` the final buffer size."""
 
     gaussians: Gaussians
     loss: np.ndarray
@@ -235,15 +237,18 @@ class SplatTrainResult(eqx.Module):
     step_seconds: float
     compile_seconds: float
     converged: bool
+    pairs: np.ndarray = None
+    max_pairs: int = 0
 
 
 _FIELDS = ("means", "log_scales", "quats", "opacity_logits", "colors")
 
 
 def _loss_fn(y, args):
-    img, cam, valid, bg, lam, dist_w, dist_norm, tile, cap = args
+    img, cam, valid, bg, lam, dist_w, dist_norm, tile, max_pairs, chunk = args
     g = Gaussians(y["means"], y["log_scales"], y["quats"], y["opacity_logits"], y["colors"], valid=valid)
-    out = render_splats(g, cam, tile_size=tile, capacity=cap, background=bg, uv_offset=y["uv_offset"])
+    out = render_splats(g, cam, tile_size=tile, max_pairs=max_pairs, chunk=chunk, background=bg,
+                        uv_offset=y["uv_offset"])
     l1 = jnp.mean(jnp.abs(out.color - img))
     loss = (1 - lam) * l1 + lam * (1 - ssim_color(out.color, img))
     d = out.distortion
@@ -251,14 +256,15 @@ def _loss_fn(y, args):
         has = out.alpha > 1e-3
         d = jnp.where(has, d / jnp.where(has, out.alpha**2, 1.0), 0.0)
     loss = loss + dist_w * jnp.mean(d)
-    return loss, (out.projected.visible, out.overflow)
+    return loss, (out.projected.visible, out.overflow, out.pairs)
 
 
 def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: int = 8000,
                  iterations: int = 2000, densify_every: int = 100, densify_from: int = 100,
                  densify_until: int | None = None, grad_threshold: float | None = None,
                  prune_opacity: float = 0.005, lam: float = 0.2, dist_weight: float = 0.0,
-                 dist_normalise: bool = False, tile_size: int = 16, capacity: int = 512,
+                 dist_normalise: bool = False, tile_size: int = 16, capacity: int | None = None,
+                 max_pairs: int | None = None, chunk: int = 64,
                  lr_means: float = 1.6e-3, lr_means_final: float = 1.6e-5, lr_scales: float = 5e-3,
                  lr_quats: float = 1e-3, lr_opacity: float = 0.05, lr_colors: float = 2.5e-3,
                  progress: bool = True, dtype=jnp.float32) -> SplatTrainResult:
@@ -275,7 +281,13 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
             (default ``0.0002 / (W / 2)``, the 3DGS NDC threshold in pixels).
         prune_opacity: opacity below which splats are removed.
         lam: SSIM weight; dist_weight, dist_normalise: depth-distortion term.
-        tile_size, capacity: rasteriser tiles (overflow is recorded per step).
+        tile_size, chunk: rasteriser tiles and compositing chunk (:func:`fsjax.render.render_splats`).
+        max_pairs: initial size of the rasteriser's (splat, tile) pair buffer (default: measured on
+            the first training view; ``capacity x tiles`` when the legacy ``capacity`` is given).
+            Every step returns the demand; a step whose demand exceeds the buffer is re-run with
+            the buffer grown to the next power of two of 1.125 x the demand (one recompile per
+            growth), so no step trains on an incomplete render. ``overflow`` records what the
+            accepted step dropped (0 unless growth failed).
         lr_*: Adam learning rates (``lr_means`` in units of the scene extent, decayed
             exponentially to ``lr_means_final``).
         progress: show a tqdm bar.
@@ -305,26 +317,33 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     cams = jax.tree_util.tree_map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a,
                                   data.cameras)
     bg = jnp.zeros(3, dtype)
-    stat = (tile_size, capacity)
+    def cam_of(view):
+        return jax.tree_util.tree_map(lambda a: a[view], cams)
 
-    def args_for(view, valid_j):
-        cam = jax.tree_util.tree_map(lambda a: a[view], cams)
-        return (images[view], cam, valid_j, bg, lam, dist_weight, dist_normalise) + stat
+    def args_for(view, valid_j, B):
+        return (images[view], cam_of(view), valid_j, bg, lam, dist_weight, dist_normalise, tile_size, B, chunk)
 
-    a0 = args_for(int(data.train[0]), jnp.asarray(valid))
+    if max_pairs is not None:
+        B = int(max_pairs)
+    elif capacity is not None:
+        B = int(capacity) * (-(-data.cameras.height // tile_size)) * (-(-data.cameras.width // tile_size))
+    else:
+        B = _bucket(count_splat_pairs(g, cam_of(int(data.train[0])), tile_size=tile_size))
+    a0 = args_for(int(data.train[0]), jnp.asarray(valid), B)
     f_struct = jax.ShapeDtypeStruct((), dtype)
     aux_struct = None
     state = solver.init(_loss_fn, y, a0, {}, f_struct, aux_struct, frozenset())
 
     @eqx.filter_jit
-    def step(y, state, view, valid_j):
+    def step(y, state, view, valid_j, B):
         y = dict(y, uv_offset=jnp.zeros_like(y["uv_offset"]))
-        args = args_for(view, valid_j)
+        args = args_for(view, valid_j, B)
         y2, state2, aux = solver.step(_loss_fn, y, args, {}, state, frozenset())
         return y2, state2, aux, state2.f
 
     order = np.asarray(jax.random.permutation(kview, np.tile(data.train, iterations // len(data.train) + 1)))
-    losses, overflows, counts, times = [], [], [], []
+    losses, overflows, counts, times, demand = [], [], [], [], []
+    compiled = {B}
     gacc = np.zeros(N)
     gden = np.zeros(N)
     rng_split = np.random.default_rng(np.asarray(jax.random.key_data(ksplit)).ravel()[-1].item())
@@ -335,13 +354,22 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     compile_s = 0.0
     for s in it:
         t0 = time.perf_counter()
-        y, state, (vis, ov), f = step(y, state, jnp.asarray(order[s]), jnp.asarray(valid))
+        fresh = s == 0
+        while True:
+            y1, state1, (vis, ov, npairs), f = step(y, state, jnp.asarray(order[s]), jnp.asarray(valid), B)
+            if int(npairs) <= B:
+                break
+            B = _bucket(int(npairs))  # grow the pair buffer and re-run this step
+            fresh = fresh or B not in compiled
+            compiled.add(B)
+        y, state = y1, state1
         f = float(f)
         dt_s = time.perf_counter() - t0
-        if s == 0:
-            compile_s = dt_s
+        if fresh:
+            compile_s += dt_s
         else:
             times.append(dt_s)
+        demand.append(int(npairs))
         losses.append(f)
         overflows.append(int(ov))
         vis = np.asarray(vis)
@@ -359,7 +387,8 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     gfin = Gaussians(*(y[k] for k in _FIELDS), valid=jnp.asarray(valid))
     return SplatTrainResult(gaussians=gfin, loss=np.asarray(losses), n_splats=np.asarray(counts, int),
                             overflow=np.asarray(overflows), step_seconds=float(np.median(times)) if times else
-                            float("nan"), compile_seconds=compile_s, converged=bool(np.isfinite(losses[-1])))
+                            float("nan"), compile_seconds=compile_s, converged=bool(np.isfinite(losses[-1])),
+                            pairs=np.asarray(demand), max_pairs=B)
 
 
 class _GroupedAdamState(eqx.Module):
@@ -453,7 +482,8 @@ def _densify_prune(y, state, valid, grad, thr, prune_opacity, big_scale, rng):
     return y, state, valid
 
 
-def evaluate_splats(g: Gaussians, data: MultiViewData, views=None, *, tile_size: int = 16, capacity: int = 1024,
+def evaluate_splats(g: Gaussians, data: MultiViewData, views=None, *, tile_size: int = 16,
+                    capacity: int | None = None,
                     alpha_threshold: float = 0.5) -> dict:
     """Held-out metrics (means over ``views``, default ``data.test``).
 
@@ -461,7 +491,8 @@ def evaluate_splats(g: Gaussians, data: MultiViewData, views=None, *, tile_size:
     ``thickness``: per object pixel, the weight-normalised mean pairwise depth separation of
     the composited splats, ``distortion / A^2`` (0 for a single sheet, larger for a thick
     cloud), averaged; ``median_depth_error``: mean ``|median depth - true depth|`` over
-    object pixels; ``overflow``: total splat-tile pairs dropped."""
+    object pixels; ``overflow``: total splat-tile pairs dropped (0 with the default
+    ``capacity=None``: each eager render sizes its pair buffer from the measured demand)."""
     views = data.test if views is None else views
     ps, ss, holes, thick, mde, ov = [], [], [], [], [], 0
     for vi in views:

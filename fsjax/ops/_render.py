@@ -28,7 +28,7 @@ _RASTER_REFS = ["M. Olano, T. Greer, Triangle scan conversion using 2D homogeneo
 
 @register(family="render", takes=(Mesh, Camera), gives=Depth, differentiable=True, refs=_RASTER_REFS)
 def render_depth(mesh: Mesh, camera: Camera, /, *, tile: int = 16, capacity: int = 256) -> Depth:
-    """Depth map of a triangle mesh seen by a pinhole camera (z-buffer by tiled rasterisation).
+    """Depth map of a triangle mesh seen by a pinhole camera (z-buffer by rasterisation).
 
     At each pixel centre the nearest triangle hit along the ray ``K^-1 (col, row, 1)`` gives
     the camera-frame depth ``z = (n . P0) / (n . d)`` (homogeneous edge functions, see
@@ -37,8 +37,10 @@ def render_depth(mesh: Mesh, camera: Camera, /, *, tile: int = 16, capacity: int
     Args:
       mesh: triangle mesh (world units).
       camera: pinhole camera (zero distortion); the depth has its ``height x width``.
-      tile: static screen-tile side (pixels); capacity: static triangles per tile. A tile
-        overflow makes the affected pixels NaN (never a silent hole).
+      tile, capacity: static ints sizing the rasteriser's candidate buffer under ``jit``
+        (``4 x capacity x tiles`` of ``tile x tile`` pixels; see :func:`fsjax.render.rasterize`);
+        an eager call sizes it from the measured demand and is always complete. Pixels that
+        an overflow may have changed are NaN (never a silent hole).
 
     Returns:
       ``Depth`` with the camera. Differentiable in the vertex positions and the camera
@@ -67,8 +69,8 @@ def render_silhouette(mesh: Mesh, camera: Camera, /, *, tile: int = 16, capacity
 
     Args:
       mesh: triangle mesh; camera: pinhole camera (zero distortion).
-      tile, capacity: static tiling parameters (see :func:`render_depth`); pixels of an
-        overflowing tile are reported as covered only when a kept triangle covers them.
+      tile, capacity: static buffer sizing under ``jit`` (see :func:`render_depth`); after an
+        overflow a pixel is reported as covered only when a kept candidate covers it.
 
     Returns:
       ``Region`` ``(H, W)``.

@@ -28,11 +28,16 @@ it or lie partly behind the camera. Triangles entirely in front of ``near`` need
 for binning, a triangle crossing the plane is clipped (Sutherland-Hodgman against
 ``z = near``) before its screen bounding box is taken.
 
-Tiles: the image is cut into ``tile x tile`` screen tiles; each triangle is binned into the
-tiles its clipped bounding box overlaps, and each tile keeps at most ``capacity`` triangles
-(lowest face ids first). Dropped (triangle, tile) pairs are **counted** in
-``Raster.overflow`` and the pixels of affected tiles are flagged in ``Raster.incomplete``:
-never silent holes. Ties in depth (coincident faces) go to the lowest face id.
+Candidates (the work follows the scene): each usable triangle emits one (face, pixel)
+candidate per pixel centre inside its near-clipped screen bounding box into one global buffer
+(face order, a prefix sum gives every candidate its slot); each candidate is tested and a
+scatter-min per pixel keeps the nearest hit. The cost is the number of candidates -- about the
+covered area times the depth complexity, plus the bounding-box slack of slanted triangles --
+not tiles x a per-tile capacity. The buffer's static size is measured for an eager call (so
+the result is complete) and given (``max_fragments``) or derived from ``capacity`` under
+``jit``; dropped candidates are **counted** in ``Raster.overflow`` and the pixels they could
+cover are flagged in ``Raster.incomplete``: never silent holes. Ties in depth (coincident
+faces) go to the lowest face id.
 
 Differentiability: the visibility search (which face is seen) is discrete; afterwards depth,
 barycentrics and normals are recomputed from the vertex positions and the camera arrays
@@ -56,8 +61,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..types import Camera, Mesh, is_concrete
+from .splat import _bucket
 
-__all__ = ["Raster", "rasterize", "interpolate", "vertex_normals"]
+__all__ = ["Raster", "rasterize", "interpolate", "vertex_normals", "count_fragments"]
 
 
 class Raster(eqx.Module):
@@ -72,8 +78,9 @@ class Raster(eqx.Module):
       face_normal: ``(H, W, 3)`` world-frame unit normal of the visible face (winding order).
       alpha: ``(H, W)`` coverage, 1.0 on the object and 0.0 on background (hard silhouette).
       front: ``(H, W)`` bool, the camera sees the front (winding) side of the face.
-      incomplete: ``(H, W)`` bool, the pixel's tile dropped triangles (capacity overflow).
-      overflow: int32 scalar, number of (triangle, tile) pairs dropped; 0 means exact.
+      incomplete: ``(H, W)`` bool, the pixel lies in the box of a triangle whose candidates were
+        dropped (buffer overflow): its value may be wrong.
+      overflow: int32 scalar, number of (triangle, pixel) candidates dropped; 0 means exact.
       bad_faces: int32 scalar, valid faces that were skipped because a vertex is not finite
         or the face has zero area (degenerate).
     """
@@ -241,80 +248,73 @@ def _bin(c0, c1, r0, r1, usable, H, W, tile, capacity, pairs=None):
     return table, count, kept, ntx, nty
 
 
-def _search(table, ntx, nty, tile, rays_pad, Cj, Nn, Dt, near, batch):
-    """Per tile: nearest covering face per pixel (discrete; no gradient)."""
-    T, C = table.shape
-    rays_t = rays_pad.reshape(nty, tile, ntx, tile, 3).transpose(0, 2, 1, 3, 4).reshape(T, tile * tile, 3)
-
-    def one(args):
-        ids, d = args
-        ok = ids >= 0
-        g = jnp.maximum(ids, 0)
-        c = Cj[g]  # (C, 3, 3): rows P_j x P_k for i = 0, 1, 2
-        n = Nn[g]  # (C, 3)
-        det = Dt[g]  # (C,)
-        num = jnp.einsum("pk,cik->pci", d, c)
-        den = d @ n.T  # (P, C)
-        s = jnp.where(den < 0, -1.0, 1.0).astype(d.dtype)
-        inside = jnp.all(num * s[..., None] >= 0, axis=-1) & (den != 0) & ok[None, :]
-        z = det[None, :] / jnp.where(den != 0, den, 1.0)
-        z = jnp.where(inside & (z >= near), z, jnp.inf)
-        b = jnp.argmin(z, axis=1)
-        zb = jnp.take_along_axis(z, b[:, None], axis=1)[:, 0]
-        return jnp.where(jnp.isfinite(zb), ids[b], -1)
-
-    fid = jax.lax.map(one, (table, rays_t), batch_size=batch)  # (T, P)
-    return fid.reshape(nty, ntx, tile, tile).transpose(0, 2, 1, 3).reshape(nty * tile, ntx * tile)
+def _fragment_boxes(c0, c1, r0, r1, usable, H, W):
+    """Integer pixel boxes ``x0..x1, y0..y1`` (clipped to the image) and the candidate count
+    ``k = (x1 - x0 + 1)(y1 - y0 + 1)`` per triangle (0 when it covers no pixel centre)."""
+    on = usable & (c1 >= c0) & (r1 >= r0) & (c1 >= 0) & (c0 <= W - 1) & (r1 >= 0) & (r0 <= H - 1)
+    x0 = jnp.clip(c0, 0, W - 1).astype(jnp.int32)
+    x1 = jnp.clip(c1, 0, W - 1).astype(jnp.int32)
+    y0 = jnp.clip(r0, 0, H - 1).astype(jnp.int32)
+    y1 = jnp.clip(r1, 0, H - 1).astype(jnp.int32)
+    wx = jnp.where(on, x1 - x0 + 1, 0)
+    wy = jnp.where(on, y1 - y0 + 1, 0)
+    return x0, x1, y0, y1, on, wx, wy
 
 
-def rasterize(mesh: Mesh, camera: Camera, *, tile: int = 16, capacity: int = 256, near: float = 1e-6,
-              cull_backfaces: bool = False, batch_tiles: int = 8) -> Raster:
-    """Rasterise a triangle mesh seen by a pinhole camera: per-pixel depth, face ids, barycentrics, normals.
+def _search_fragments(boxes, H, W, B, K, Cj, Nn, Dt, near, fdt):
+    """Nearest covering face per pixel from a buffer of ``B`` (face, pixel) candidates.
 
-    Visibility is found per screen tile among the (at most ``capacity``) triangles binned to
-    it; at each pixel centre the ray ``d = K^-1 (col, row, 1)`` is tested against the
-    triangles with the homogeneous edge functions ``b_i = d . (P_j x P_k) / (d . n)`` and the
-    nearest hit with ``z >= near`` wins. Depth, barycentrics and normals of the winning face
-    are then recomputed differentiably (see the module docstring for the gradient).
+    Every usable triangle emits one candidate per pixel centre in its clipped box (face order);
+    each candidate is tested with the homogeneous edge functions; a scatter-min per pixel keeps
+    the nearest depth, a second scatter-min the lowest face id among the candidates at that
+    depth. Candidates beyond ``B`` are dropped: returns ``fid (H, W)``, the demand ``total``,
+    and ``lost (H, W)`` (pixels inside the box of a face that lost candidates)."""
+    x0, x1, y0, y1, on, wx, wy = boxes
+    F = wx.shape[0]
+    k = wx * wy
+    # float cumulative sum saturated at B + 1: exact below 2^24 (float32) / 2^53 (float64) and free of
+    # int32 wrap-around for absurd demands
+    endf = jnp.cumsum(k.astype(fdt))
+    total = endf[-1]
+    end = jnp.minimum(endf, B + 1).astype(jnp.int32)
+    p = jnp.arange(B, dtype=jnp.int32)
+    f = jnp.clip(jnp.searchsorted(end, p, side="right"), 0, F - 1).astype(jnp.int32)
+    j = p - (end[f] - k[f])
+    live = p < end[-1]
+    wxf = jnp.maximum(wx[f], 1)
+    px = x0[f] + j % wxf
+    py = y0[f] + j // wxf
+    yy = (py.astype(fdt) - K[1, 2]) / K[1, 1]
+    xx = (px.astype(fdt) - K[0, 2] - K[0, 1] * yy) / K[0, 0]
+    d = jnp.stack([xx, yy, jnp.ones_like(xx)], -1)  # the ray of _rays, elementwise the same numbers
+    num = jnp.einsum("bk,bik->bi", d, Cj[f])
+    den = jnp.sum(d * Nn[f], -1)
+    s = jnp.where(den < 0, -1.0, 1.0).astype(fdt)
+    inside = jnp.all(num * s[:, None] >= 0, axis=-1) & (den != 0) & live
+    z = Dt[f] / jnp.where(den != 0, den, 1.0)
+    z = jnp.where(inside & (z >= near), z, jnp.inf)
+    pix = jnp.where(live, py * W + px, H * W)
+    zbuf = jnp.full((H * W,), jnp.inf, fdt).at[pix].min(z, mode="drop")
+    win = jnp.isfinite(z) & (z == zbuf[jnp.minimum(pix, H * W - 1)])
+    fbuf = jnp.full((H * W,), F, jnp.int32).at[pix].min(jnp.where(win, f, F), mode="drop")
+    fid = jnp.where(fbuf < F, fbuf, -1).reshape(H, W)
+    # pixels a face with dropped candidates may cover: 2-D difference array of those faces' boxes
+    cut = on & (endf > B)
+    one = cut.astype(jnp.int32)
+    diff = jnp.zeros((H + 1, W + 1), jnp.int32)
+    diff = diff.at[y0, x0].add(one).at[y0, x1 + 1].add(-one).at[y1 + 1, x0].add(-one).at[y1 + 1, x1 + 1].add(one)
+    lost = jnp.cumsum(jnp.cumsum(diff, axis=0), axis=1)[:H, :W] > 0
+    return fid, total, lost
 
-    Args:
-      mesh: one :class:`fsjax.Mesh` (world units); ``face_valid`` masks faces out.
-      camera: one pinhole :class:`fsjax.Camera` (zero distortion), image ``height x width``.
-      tile: static tile side in pixels (default 16).
-      capacity: static maximum number of triangles per tile (default 256). Overflow is
-        counted in ``Raster.overflow`` and flagged per pixel in ``Raster.incomplete``.
-      near: near-plane depth (scene units, default 1e-6); hits with ``z < near`` are clipped.
-      cull_backfaces: skip faces seen from their back side (halves the work on closed meshes;
-        wrong for open meshes seen from behind). Default False.
-      batch_tiles: static number of tiles evaluated together (memory/speed trade-off).
 
-    Returns:
-      :class:`Raster` with ``(H, W)`` channels.
+_TRACED_FRAGMENTS_PER_TILE_SLOT = 4
 
-    Raises:
-      ValueError: empty mesh, no valid face, non-positive ``tile``/``capacity``, or a camera
-        with non-zero distortion (when concrete).
 
-    Example:
-        >>> cam = fsjax.Camera.from_intrinsics(50.0, 50.0, 15.5, 11.5, width=32, height=24)
-        >>> v = jnp.asarray([[-5.0, -5, 3], [5, -5, 3], [5, 5, 3], [-5, 5, 3]])
-        >>> square = fsjax.Mesh(v, jnp.asarray([[0, 2, 1], [0, 3, 2]]))
-        >>> r = fsjax.render.rasterize(square, cam)
-        >>> float(jnp.max(jnp.abs(r.depth - 3.0))), int(r.overflow), float(r.alpha.mean())
-        (0.0, 0, 1.0)
-    """
-    _check(mesh, camera, tile, capacity, "rasterize")
-    H, W = camera.height, camera.width
-    dtype = jnp.result_type(mesh.vertices.dtype, camera.K.dtype)
-    Xw = mesh.vertices.astype(dtype)
-    K, R, t = camera.K.astype(dtype), camera.R.astype(dtype), camera.t.astype(dtype)
-    faces = mesh.faces
-    near = jnp.asarray(near, dtype)
-
-    # ---- discrete part: binning and visibility (no gradient) ----
-    Xs = jax.lax.stop_gradient(Xw)
-    Ks, Rs, ts = (jax.lax.stop_gradient(a) for a in (K, R, t))
-    P = ((Xs - ts) @ Rs)[faces]  # (F, 3, 3) camera frame
+def _visibility_setup(mesh, camera, near, cull_backfaces, dtype):
+    """Camera-frame face data for the discrete visibility search (no gradient)."""
+    Xs = jax.lax.stop_gradient(mesh.vertices.astype(dtype))
+    Ks, Rs, ts = (jax.lax.stop_gradient(a.astype(dtype)) for a in (camera.K, camera.R, camera.t))
+    P = ((Xs - ts) @ Rs)[mesh.faces]  # (F, 3, 3) camera frame
     n = jnp.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
     Cj = jnp.stack([jnp.cross(P[:, 1], P[:, 2]), jnp.cross(P[:, 2], P[:, 0]), jnp.cross(P[:, 0], P[:, 1])], axis=1)
     det = jnp.sum(P[:, 0] * Cj[:, 0], axis=-1)
@@ -330,13 +330,107 @@ def rasterize(mesh: Mesh, camera: Camera, *, tile: int = 16, capacity: int = 256
     P0 = jnp.where(usable[:, None, None], P, 1.0)
     umin, umax, vmin, vmax, vis = _clipped_bbox(P0, Ks, near)
     usable = usable & vis & jnp.isfinite(umin) & jnp.isfinite(umax) & jnp.isfinite(vmin) & jnp.isfinite(vmax)
-    table, count, kept, ntx, nty = _bin(*_pixel_range(umin, umax, vmin, vmax), usable, H, W, tile, capacity)
-    rays = _rays(Ks, nty * tile, ntx * tile, dtype)
+    boxes = _fragment_boxes(*_pixel_range(umin, umax, vmin, vmax), usable, camera.height, camera.width)
     Cj = jnp.where(usable[:, None, None], Cj, 0.0)
-    fid = _search(table, ntx, nty, tile, rays, Cj, jnp.where(usable[:, None], n, 0.0), det, near,
-                  min(batch_tiles, ntx * nty))[:H, :W]
-    lost = (count - kept).reshape(nty, ntx)
-    incomplete = jnp.repeat(jnp.repeat(lost > 0, tile, axis=0), tile, axis=1)[:H, :W]
+    return Ks, boxes, Cj, jnp.where(usable[:, None], n, 0.0), det, bad
+
+
+@eqx.filter_jit
+def _count_fragments(mesh, camera, near, cull_backfaces):
+    dtype = jnp.result_type(mesh.vertices.dtype, camera.K.dtype)
+    *_, wx, wy = _visibility_setup(mesh, camera, jnp.asarray(near, dtype), cull_backfaces, dtype)[1]
+    return jnp.sum(wx.astype(dtype) * wy.astype(dtype))
+
+
+def count_fragments(mesh: Mesh, camera: Camera, *, near: float = 1e-6, cull_backfaces: bool = False) -> int:
+    """Number of (triangle, pixel-centre) candidates :func:`rasterize` tests for this view (an int).
+
+    Each usable triangle contributes the pixel centres of its clipped screen bounding box. Use
+    it to size ``max_fragments`` for a jitted :func:`rasterize`; an eager call does this itself.
+
+    Example:
+        >>> cam = fsjax.Camera.from_intrinsics(50.0, 50.0, 15.5, 11.5, width=32, height=24)
+        >>> v = jnp.asarray([[-5.0, -5, 3], [5, -5, 3], [5, 5, 3], [-5, 5, 3]])
+        >>> fsjax.render.count_fragments(fsjax.Mesh(v, jnp.asarray([[0, 2, 1], [0, 3, 2]])), cam)
+        1536
+    """
+    _check(mesh, camera, 16, 1, "count_fragments")
+    return int(_count_fragments(mesh, camera, near, bool(cull_backfaces)))
+
+
+def rasterize(mesh: Mesh, camera: Camera, *, tile: int = 16, capacity: int = 256, near: float = 1e-6,
+              cull_backfaces: bool = False, batch_tiles: int = 8, max_fragments: int | None = None) -> Raster:
+    """Rasterise a triangle mesh seen by a pinhole camera: per-pixel depth, face ids, barycentrics, normals.
+
+    Every usable triangle (valid, finite, non-degenerate, partly in front of ``near``) emits one
+    candidate per pixel centre inside its (near-clipped) screen bounding box into a global
+    buffer; at each candidate the ray ``d = K^-1 (col, row, 1)`` is tested with the homogeneous
+    edge functions ``b_i = d . (P_j x P_k) / (d . n)``, and a scatter-min per pixel keeps the
+    nearest hit with ``z >= near`` (ties: lowest face id). The cost follows the candidates that
+    exist (about the covered area times the depth complexity), not a per-tile capacity. Depth,
+    barycentrics and normals of the winning face are then recomputed differentiably (see the
+    module docstring for the gradient).
+
+    The buffer has a static size ``B``: ``max_fragments`` when given; otherwise, for an eager
+    call (concrete inputs), the measured demand (:func:`count_fragments`) rounded up to a power
+    of two, so an eager call is always complete; under ``jit``/``grad`` tracing,
+    ``4 x capacity x tiles`` (``tiles`` of ``tile x tile`` pixels; the defaults give 4 candidates
+    per pixel). Candidates beyond ``B`` are dropped, **counted** in ``Raster.overflow``, and the
+    pixels they could cover are flagged in ``Raster.incomplete``.
+
+    Args:
+      mesh: one :class:`fsjax.Mesh` (world units); ``face_valid`` masks faces out.
+      camera: one pinhole :class:`fsjax.Camera` (zero distortion), image ``height x width``.
+      tile, capacity: static ints sizing the candidate buffer under tracing (above); kept from the
+        tiled rasteriser this one replaced, where ``capacity`` was the triangles per tile.
+      near: near-plane depth (scene units, default 1e-6); hits with ``z < near`` are clipped.
+      cull_backfaces: skip faces seen from their back side (halves the work on closed meshes;
+        wrong for open meshes seen from behind). Default False.
+      batch_tiles: accepted for compatibility; unused.
+      max_fragments: static size of the candidate buffer (see above).
+
+    Returns:
+      :class:`Raster` with ``(H, W)`` channels.
+
+    Raises:
+      ValueError: empty mesh, no valid face, non-positive ``tile``/``capacity``/``max_fragments``,
+        or a camera with non-zero distortion (when concrete).
+
+    Example:
+        >>> cam = fsjax.Camera.from_intrinsics(50.0, 50.0, 15.5, 11.5, width=32, height=24)
+        >>> v = jnp.asarray([[-5.0, -5, 3], [5, -5, 3], [5, 5, 3], [-5, 5, 3]])
+        >>> square = fsjax.Mesh(v, jnp.asarray([[0, 2, 1], [0, 3, 2]]))
+        >>> r = fsjax.render.rasterize(square, cam)
+        >>> float(jnp.max(jnp.abs(r.depth - 3.0))), int(r.overflow), float(r.alpha.mean())
+        (0.0, 0, 1.0)
+    """
+    _check(mesh, camera, tile, capacity, "rasterize")
+    if max_fragments is not None and (isinstance(max_fragments, bool) or not isinstance(max_fragments, (int, np.integer))
+                                      or int(max_fragments) < 1):
+        raise ValueError(f"rasterize(max_fragments=...): must be a positive static int, got {max_fragments!r}")
+    H, W = camera.height, camera.width
+    if max_fragments is None:
+        leaves = [x for x in jax.tree_util.tree_leaves((mesh, camera, near)) if isinstance(x, (jax.Array, np.ndarray))]
+        if all(is_concrete(x) for x in leaves):
+            max_fragments = _bucket(_count_fragments(mesh, camera, near, bool(cull_backfaces)))
+        else:
+            max_fragments = _TRACED_FRAGMENTS_PER_TILE_SLOT * int(capacity) * (-(-H // tile)) * (-(-W // tile))
+    return _raster_core(mesh, camera, near, bool(cull_backfaces), int(max_fragments))
+
+
+@eqx.filter_jit
+def _raster_core(mesh, camera, near, cull_backfaces, B):
+    H, W = camera.height, camera.width
+    dtype = jnp.result_type(mesh.vertices.dtype, camera.K.dtype)
+    Xw = mesh.vertices.astype(dtype)
+    K, R, t = camera.K.astype(dtype), camera.R.astype(dtype), camera.t.astype(dtype)
+    faces = mesh.faces
+    near = jnp.asarray(near, dtype)
+
+    # ---- discrete part: candidates and visibility (no gradient) ----
+    Ks, boxes, Cj, Nn, det, bad = _visibility_setup(mesh, camera, near, cull_backfaces, dtype)
+    fid, total, incomplete = _search_fragments(boxes, H, W, B, Ks, Cj, Nn, det, near, dtype)
+    overflow = jnp.minimum(jnp.maximum(total - B, 0), jnp.iinfo(jnp.int32).max).astype(jnp.int32)
 
     # ---- differentiable part: recompute the winning face's hit ----
     hit = fid >= 0
@@ -369,7 +463,7 @@ def rasterize(mesh: Mesh, camera: Camera, *, tile: int = 16, capacity: int = 256
         alpha=ok.astype(dtype),
         front=front,
         incomplete=incomplete,
-        overflow=jnp.sum(count - kept).astype(jnp.int32),
+        overflow=overflow,
         bad_faces=jnp.sum(bad).astype(jnp.int32),
     )
 

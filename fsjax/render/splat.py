@@ -32,14 +32,18 @@ Conventions (camera model of :mod:`fsjax.render.camera`):
   gives every splat an exact finite support: ``q <= r^2`` with ``r^2 = 2 ln(o / alpha_min)``,
   whose axis-aligned box ``(r sqrt(S_uu), r sqrt(S_vv))`` is what the tiler bins. Tiling is
   therefore exact -- the tiled and dense renderers agree to rounding when no tile overflows.
-* Tiles of ``tile_size`` x ``tile_size`` pixels; each tile keeps at most ``capacity``
-  splats (a static int), the nearest ones by centre depth. Splat-tile pairs beyond the
-  capacity are dropped and counted in ``SplatRender.overflow`` (and ``overflow_tiles``):
-  never a silent blank patch.
+* Tiles of ``tile_size`` x ``tile_size`` pixels, binned by sorting (3DGS; gsplat): every
+  visible splat emits one (tile, depth) pair per tile its support box touches, in global depth
+  order, into a pair buffer of static size ``max_pairs``; one stable sort by tile gives each
+  tile a contiguous depth-ordered range. The buffer is sized from the measured demand for an
+  eager call (exact); under ``jit`` it is given, and pairs beyond it (the farthest splats')
+  are dropped and counted in ``SplatRender.overflow`` (and ``overflow_tiles``), with the demand
+  in ``SplatRender.pairs``: never a silent blank patch.
 * Compositing front to back by centre depth: ``w_i = alpha_i T_i``, ``T_i = prod_{j<i}
   (1 - alpha_j)``, with early termination: splat ``i`` and all behind it are skipped once
-  ``T_i (1 - alpha_i) < t_min`` (1e-4). In XLA the termination is a mask (exact, same
-  numbers and gradients) rather than saved work.
+  ``T_i (1 - alpha_i) < t_min`` (1e-4). Each tile's range is composited in chunks of ``chunk``
+  splats by a ``lax.scan`` carrying the per-pixel state; a chunk whose tile has terminated at
+  every pixel is skipped (``lax.cond``), so termination saves work as well as being exact.
 * Outputs: colour (plus ``(1 - A) * background``), accumulated alpha ``A = sum w_i``,
   expected depth ``sum w_i z_i / A`` (0 where ``A = 0``: "no return"), median depth (the
   centre depth of the splat at which ``T`` first drops below 0.5; 0 where it never does),
@@ -68,6 +72,7 @@ __all__ = [
     "project_gaussians",
     "render_splats",
     "render_splats_dense",
+    "count_splat_pairs",
     "sh_to_rgb",
     "rgb_to_sh0",
     "SH_C0",
@@ -106,9 +111,10 @@ class SplatRender(eqx.Module):
 
     ``color`` linear RGB; ``alpha`` accumulated opacity; ``depth`` expected depth (0 = no
     return); ``median_depth`` (0 = no return); ``distortion`` the 2DGS per-ray pairwise term;
-    ``overflow`` splat-tile pairs dropped because a tile was full (0 for the dense renderer);
-    ``overflow_tiles`` tiles that overflowed; ``max_tile_count`` the largest per-tile demand;
-    ``projected`` the screen-space splats.
+    ``overflow`` splat-tile pairs dropped because the pair buffer was full (0 for the dense
+    renderer); ``overflow_tiles`` tiles that lost pairs; ``max_tile_count`` the largest per-tile
+    demand; ``projected`` the screen-space splats; ``pairs`` the (splat, tile) pair demand of
+    the view (grow ``max_pairs`` to at least this for an exact render).
     """
 
     color: Float[Array, "H W 3"]
@@ -120,6 +126,7 @@ class SplatRender(eqx.Module):
     overflow_tiles: Int[Array, ""]
     max_tile_count: Int[Array, ""]
     projected: ProjectedSplats
+    pairs: Int[Array, ""] = None
 
 
 # ---------------------------------------------------------------------------
@@ -326,9 +333,9 @@ def _composite(alpha, rgb, z, t_min, background):
     """Front-to-back compositing of ``alpha (P, C)`` (sorted by depth) with colours ``(C, 3)``."""
     # transmittance through prefix sums of log(1 - alpha) (alpha <= alpha_max < 1): cheaper than a
     # cumulative product, forward and backward, on CPU
-    logt = jnp.cumsum(jnp.log1p(-alpha), axis=-1)
-    T_incl = jnp.exp(logt)
-    T_excl = jnp.exp(logt - jnp.log1p(-alpha))
+    lg = jnp.log1p(-alpha)
+    T_excl = jnp.exp(jnp.cumsum(lg, axis=-1) - lg)
+    T_incl = T_excl * (1.0 - alpha)
     keep = T_incl >= t_min
     w = jnp.where(keep, alpha * T_excl, 0.0)
     A = jnp.sum(w, -1)
@@ -351,21 +358,96 @@ def _defaults(proj, background):
     return jnp.zeros(3, dt) if background is None else jnp.broadcast_to(jnp.asarray(background, dt), (3,))
 
 
-def render_splats(gaussians: Gaussians, camera: Camera, *, tile_size: int = 16, capacity: int = 256,
-                  background=None, near: float = 0.01, dilation_px2: float = 0.3,
-                  alpha_min: float = 1.0 / 255.0, alpha_max: float = 0.99, t_min: float = 1e-4,
-                  near_extent_sigma: float = 3.0, uv_offset=None) -> SplatRender:
-    """Render splats through a pinhole camera with fixed-capacity screen tiles.
+_TRACED_PAIRS_PER_TILE = 256
 
-    Each ``tile_size`` x ``tile_size`` tile keeps the ``capacity`` nearest splats (by centre
-    depth) whose exact support box overlaps it, composites them front to back, and counts what
-    did not fit in ``overflow``. Memory is ``O(tiles x capacity x tile_size^2)``.
+
+def _bucket(n: int) -> int:
+    """Buffer size for a measured demand ``n`` (splat-tile pairs here, triangle-pixel candidates in
+    :mod:`fsjax.render.raster`): the next power of two of ``1.125 n`` (at least 1,024), so a
+    slowly growing demand recompiles O(log n) times, not every step."""
+    return int(max(1024, 1 << int(np.ceil(np.log2(max(1.125 * float(n), 1.0))))))
+
+
+def _tile_boxes(proj, H, W, T):
+    """Inclusive tile ranges ``tx0..tx1``, ``ty0..ty1`` of each splat's exact support box, the
+    tiles per splat ``k`` and the grid size. A tile ``[x0, x0 + T - 1]`` is touched when
+    ``u - e <= x0 + T - 1`` and ``u + e >= x0`` (same for rows)."""
+    ntx, nty = -(-W // T), -(-H // T)
+    u, v = (jax.lax.stop_gradient(proj.uv[:, i]) for i in (0, 1))
+    eu, ev = (jax.lax.stop_gradient(proj.extent[:, i]) for i in (0, 1))
+    big = 1e9
+    fl = lambda a: jnp.clip(a, -big, big)  # noqa: E731
+    tx0 = jnp.maximum(jnp.ceil((fl(u - eu) - (T - 1)) / T), 0.0).astype(jnp.int32)
+    tx1 = jnp.minimum(jnp.floor(fl(u + eu) / T), ntx - 1).astype(jnp.int32)
+    ty0 = jnp.maximum(jnp.ceil((fl(v - ev) - (T - 1)) / T), 0.0).astype(jnp.int32)
+    ty1 = jnp.minimum(jnp.floor(fl(v + ev) / T), nty - 1).astype(jnp.int32)
+    on = proj.visible & (tx1 >= tx0) & (ty1 >= ty0)
+    wx = jnp.where(on, tx1 - tx0 + 1, 0)
+    wy = jnp.where(on, ty1 - ty0 + 1, 0)
+    return tx0, tx1, ty0, ty1, on, wx, wy, ntx, nty
+
+
+@eqx.filter_jit
+def _count_pairs(gaussians, camera, near, dilation_px2, alpha_min, near_extent_sigma, uv_offset, tile_size):
+    proj = _project(gaussians, camera, near, dilation_px2, alpha_min, near_extent_sigma, uv_offset)
+    *_, wx, wy, _, _ = _tile_boxes(proj, camera.height, camera.width, tile_size)
+    return jnp.sum(wx * wy)
+
+
+def count_splat_pairs(gaussians: Gaussians, camera: Camera, *, tile_size: int = 16, near: float = 0.01,
+                      dilation_px2: float = 0.3, alpha_min: float = 1.0 / 255.0, near_extent_sigma: float = 3.0,
+                      uv_offset=None) -> int:
+    """Number of (splat, tile) pairs :func:`render_splats` needs for this view (eager, an int).
+
+    Use it to size ``max_pairs`` for a jitted render; :func:`render_splats` called eagerly does
+    this itself.
+
+    Example:
+        >>> g = fsjax.Gaussians(jnp.asarray([[0.0, 0.0, 4.0]]), jnp.log(jnp.full((1, 3), 0.1)),
+        ...                     jnp.asarray([[1.0, 0.0, 0.0, 0.0]]), jnp.asarray([20.0]), jnp.ones((1, 3)))
+        >>> cam = fsjax.Camera.from_intrinsics(100.0, 100.0, 16.0, 12.0, width=32, height=24)
+        >>> fsjax.render.count_splat_pairs(g, cam)  # a centred splat touching all 2 x 2 tiles
+        4
+    """
+    _check(gaussians, camera, "count_splat_pairs", alpha_min=alpha_min, alpha_max=0.99, near=near,
+           dilation_px2=dilation_px2)
+    return int(_count_pairs(gaussians, camera, near, dilation_px2, alpha_min, near_extent_sigma, uv_offset,
+                            int(tile_size)))
+
+
+def render_splats(gaussians: Gaussians, camera: Camera, *, tile_size: int = 16, capacity: int | None = None,
+                  max_pairs: int | None = None, chunk: int = 64, background=None, near: float = 0.01,
+                  dilation_px2: float = 0.3, alpha_min: float = 1.0 / 255.0, alpha_max: float = 0.99,
+                  t_min: float = 1e-4, near_extent_sigma: float = 3.0, uv_offset=None) -> SplatRender:
+    """Render splats through a pinhole camera by sort-based tile binning (3DGS / gsplat design).
+
+    Each visible splat emits one (tile, depth) pair per ``tile_size`` x ``tile_size`` tile its
+    exact support box touches; the pairs are emitted in depth order and sorted by tile (one
+    global sort, stable), so each tile owns a contiguous, depth-ordered range. A sequential
+    ``lax.scan`` composites every tile's range in chunks of ``chunk`` splats, front to back,
+    carrying the per-pixel state (transmittance, colour, weight sums, distortion, median) from
+    chunk to chunk; a chunk is skipped (``lax.cond``) once every pixel of its tile has
+    terminated (``T < t_min``) and for unused buffer slots. Cost therefore follows the pairs
+    that exist and the early termination, not a per-tile capacity: about
+    ``pairs x tile_size^2`` opacity evaluations forward and twice that backward (the chunk
+    body is rematerialised, so memory is ``O(pairs + tiles x tile_size^2)``).
+
+    The pair buffer has a static size ``B``: ``max_pairs`` when given; otherwise, when the
+    inputs are concrete (an eager call), the measured demand (:func:`count_splat_pairs`)
+    rounded up to a power of two -- an eager render is then exact whatever ``capacity`` says;
+    under ``jit``/``grad`` tracing, ``capacity x tiles`` (``capacity`` default 256). Pairs beyond ``B`` (the farthest splats')
+    are dropped and **counted** in ``overflow``; ``pairs`` is the demand, so a caller can grow
+    the buffer and re-render (as :func:`fsjax.fit.train_splats` does).
 
     Args:
         gaussians: one set of splats (``N`` of them).
         camera: one pinhole :class:`fsjax.Camera` (zero distortion), image ``height x width``.
         tile_size: tile edge in pixels (static int).
-        capacity: splats per tile (static int); overflow is counted, not hidden.
+        capacity: pairs per tile used to size the buffer under tracing only (``B = capacity x
+            tiles``) when ``max_pairs`` is not given (static int; kept from the fixed-capacity
+            renderer this one replaced; default 256).
+        max_pairs: static size of the global (splat, tile) pair buffer (see above).
+        chunk: splats composited per step of the scan (static int).
         background: RGB ``(3,)`` behind the splats (default black).
         near: near-plane depth (camera units); culling by extent (module docstring).
         dilation_px2: screen-space dilation added to the 2-D covariance diagonal (px^2).
@@ -375,8 +457,8 @@ def render_splats(gaussians: Gaussians, camera: Camera, *, tile_size: int = 16, 
         uv_offset: ``(N, 2)`` offset of the projected means (for screen-space gradients).
 
     Returns:
-        :class:`SplatRender`. Agrees with :func:`render_splats_dense` to 1e-12 (float64, images
-        and gradients) when ``overflow == 0`` (tested).
+        :class:`SplatRender`. Agrees with :func:`render_splats_dense` to ~1e-15 (float64,
+        images and gradients) when ``overflow == 0`` (tested).
 
     Example:
         >>> g = fsjax.Gaussians(jnp.asarray([[0.0, 0.0, 4.0]]), jnp.log(jnp.full((1, 3), 0.1)),
@@ -389,68 +471,141 @@ def render_splats(gaussians: Gaussians, camera: Camera, *, tile_size: int = 16, 
     """
     _check(gaussians, camera, "render_splats", alpha_min=alpha_min, alpha_max=alpha_max, near=near,
            dilation_px2=dilation_px2)
-    for name, v in (("tile_size", tile_size), ("capacity", capacity)):
+    for name, v in (("tile_size", tile_size), ("capacity", capacity), ("max_pairs", max_pairs),
+                    ("chunk", chunk)):
+        if v is None and name in ("capacity", "max_pairs"):
+            continue
         if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
             raise ValueError(f"render_splats({name}=...): must be a static positive int, got {v!r}")
+    T = int(tile_size)
+    tiles = (-(-camera.height // T)) * (-(-camera.width // T))
+    if max_pairs is None:
+        leaves = jax.tree_util.tree_leaves((gaussians, camera, uv_offset))
+        if all(is_concrete(x) for x in leaves if isinstance(x, (jax.Array, np.ndarray))):
+            max_pairs = _bucket(int(_count_pairs(gaussians, camera, near, dilation_px2, alpha_min,
+                                                 near_extent_sigma, uv_offset, T)))
+        else:
+            max_pairs = int(capacity or _TRACED_PAIRS_PER_TILE) * tiles
     return _render_tiled(gaussians, camera, background, near, dilation_px2, alpha_min, alpha_max, t_min,
-                         near_extent_sigma, uv_offset, int(tile_size), int(capacity))
+                         near_extent_sigma, uv_offset, T, int(max_pairs), int(chunk))
 
 
 @eqx.filter_jit
 def _render_tiled(gaussians, camera, background, near, dilation_px2, alpha_min, alpha_max, t_min,
-                  near_extent_sigma, uv_offset, tile_size, capacity):
+                  near_extent_sigma, uv_offset, tile_size, max_pairs, chunk):
     proj = _project(gaussians, camera, near, dilation_px2, alpha_min, near_extent_sigma, uv_offset)
     bg = _defaults(proj, background)
-    H, Wd, T, C = camera.height, camera.width, tile_size, capacity
-    nty, ntx = -(-H // T), -(-Wd // T)
+    H, Wd, T, B, Cc = camera.height, camera.width, tile_size, max_pairs, chunk
     N = proj.uv.shape[0]
     dt = proj.uv.dtype
+    tx0, tx1, ty0, ty1, on, wx, wy, ntx, nty = _tile_boxes(proj, H, Wd, T)
+    NT = ntx * nty
+    k = wx * wy
 
-    ty, tx = jnp.meshgrid(jnp.arange(nty), jnp.arange(ntx), indexing="ij")
-    x0 = (tx.reshape(-1) * T).astype(dt)
-    y0 = (ty.reshape(-1) * T).astype(dt)
-    u, v = proj.uv[:, 0], proj.uv[:, 1]
-    eu, ev = proj.extent[:, 0], proj.extent[:, 1]
-    uu, vv = jax.lax.stop_gradient(u), jax.lax.stop_gradient(v)
-    eu, ev = jax.lax.stop_gradient(eu), jax.lax.stop_gradient(ev)
-    overlap = (proj.visible[None, :]
-               & (uu[None, :] + eu[None, :] >= x0[:, None]) & (uu[None, :] - eu[None, :] <= x0[:, None] + T - 1)
-               & (vv[None, :] + ev[None, :] >= y0[:, None]) & (vv[None, :] - ev[None, :] <= y0[:, None] + T - 1))
-    counts = jnp.sum(overlap, -1)
-    order = jnp.argsort(jnp.where(proj.visible, jax.lax.stop_gradient(proj.depth), jnp.inf))
-    ov_sorted = overlap[:, order]
-    pos = jnp.cumsum(ov_sorted, -1) - 1
-    slot = jnp.where(ov_sorted & (pos < C), pos, C)
-    ids = jnp.full((overlap.shape[0], C + 1), N, dtype=jnp.int32)
-    ids = jax.vmap(lambda row, s: row.at[s].set(order.astype(jnp.int32), mode="drop"))(ids, slot)[:, :C]
+    # exact per-tile demand: 2-D difference array of the tile boxes
+    one = on.astype(jnp.int32)
+    diff = jnp.zeros((nty + 1, ntx + 1), jnp.int32)
+    diff = diff.at[ty0, tx0].add(one).at[ty0, tx1 + 1].add(-one)
+    diff = diff.at[ty1 + 1, tx0].add(-one).at[ty1 + 1, tx1 + 1].add(one)
+    demand = jnp.cumsum(jnp.cumsum(diff, axis=0), axis=1)[:nty, :ntx].reshape(NT)
 
-    pad = lambda a, val: jnp.concatenate([a, jnp.full((1,) + a.shape[1:], val, a.dtype)], 0)  # noqa: E731
-    uv_p = pad(proj.uv, 0.0)
-    conic_p = pad(proj.conic, 0.0)
-    op_p = pad(proj.opacity, 0.0)
-    rgb_p = pad(proj.rgb, 0.0)
-    z_p = pad(proj.depth, 0.0)
+    # pairs emitted in depth order (the buffer keeps the nearest B), then one stable sort by tile
+    order = jnp.argsort(jnp.where(on, jax.lax.stop_gradient(proj.depth), jnp.inf)).astype(jnp.int32)
+    ko = k[order]
+    end = jnp.cumsum(ko)
+    total = end[-1]
+    p = jnp.arange(B, dtype=jnp.int32)
+    s = jnp.clip(jnp.searchsorted(end, p, side="right"), 0, N - 1)
+    sid = order[s]
+    j = p - (end[s] - ko[s])
+    wj = jnp.maximum(wx[sid], 1)
+    key = jnp.where(p < total, (ty0[sid] + j // wj) * ntx + tx0[sid] + j % wj, NT)
+    perm = jnp.argsort(key, stable=True)
+    skey = key[perm]
+    ssid = sid[perm]
+    bounds = jnp.searchsorted(skey, jnp.arange(NT + 1, dtype=skey.dtype), side="left").astype(jnp.int32)
+    start, cnt = bounds[:-1], bounds[1:] - bounds[:-1]
 
+    # fixed-size chunks, each inside one tile's range
+    nch = (cnt + Cc - 1) // Cc
+    cend = jnp.cumsum(nch)
+    NC = B // Cc + NT
+    q = jnp.arange(NC, dtype=jnp.int32)
+    tq = jnp.searchsorted(cend, q, side="right").astype(jnp.int32)
+    okc = tq < NT
+    tqc = jnp.minimum(tq, NT - 1)
+    iq = q - (cend[tqc] - nch[tqc])
+    pos = start[tqc, None] + iq[:, None] * Cc + jnp.arange(Cc, dtype=jnp.int32)[None, :]
+    okp = okc[:, None] & (pos < (start[tqc] + cnt[tqc])[:, None])
+    ids = jnp.where(okp, ssid[jnp.clip(pos, 0, B - 1)], N)
+    first = okc & (iq == 0)
+
+    pad = lambda a: jnp.concatenate([a, jnp.zeros((1,) + a.shape[1:], a.dtype)], 0)  # noqa: E731
+    xs = (tq, first, okc, pad(proj.uv)[ids], pad(proj.conic)[ids], pad(proj.opacity)[ids], pad(proj.rgb)[ids],
+          pad(proj.depth)[ids])
     ly, lx = jnp.meshgrid(jnp.arange(T, dtype=dt), jnp.arange(T, dtype=dt), indexing="ij")
     local = jnp.stack([lx.reshape(-1), ly.reshape(-1)], -1)
+    P = T * T
+    zP = jnp.zeros(P, dt)
+    init = (zP, zP, zP, zP, jnp.zeros((P, 3), dt), zP, jnp.zeros(P, bool))
+    t_min = jnp.asarray(t_min, dt)
+    upper = jnp.triu(jnp.ones((Cc, Cc), dt), 1)
 
-    def tile(ids_t, ox, oy):
-        px = local + jnp.stack([ox, oy])
-        al = _alphas(px, uv_p[ids_t], conic_p[ids_t], op_p[ids_t], alpha_min, alpha_max)
-        return _composite(al, rgb_p[ids_t], z_p[ids_t], t_min, bg)
+    def chunk_fn(carry, tqi, uv, conic, op, rgb, z):
+        L0, W0, S0, D0, C0, med, found = carry
+        ox = (tqi % ntx).astype(dt) * T
+        oy = (tqi // ntx).astype(dt) * T
+        al = _alphas(local + jnp.stack([ox, oy]), uv, conic, op, alpha_min, alpha_max)
+        lg = jnp.log1p(-al)
+        # exclusive prefix sums as one product with a strictly upper-triangular matrix of ones:
+        # faster than cumsum on XLA:CPU for chunk-sized rows, same sums up to rounding order
+        le = L0[:, None] + lg @ upper
+        T_excl = jnp.exp(le)
+        T_incl = T_excl * (1.0 - al)
+        keep = T_incl >= t_min
+        w = jnp.where(keep, al * T_excl, 0.0)
+        wz = w * z[None, :]
+        pre = jnp.concatenate([w, wz], 0) @ upper
+        Wp = W0[:, None] + pre[:P]
+        Sp = S0[:, None] + pre[P:]
+        D = D0 + 2.0 * jnp.sum(wz * Wp - w * Sp, -1)
+        crossed = keep & (T_incl < 0.5)
+        here = jnp.any(crossed, -1)
+        zc = z[jnp.argmax(crossed, -1)]
+        med = jnp.where(~found & here, zc, med)
+        return (le[:, -1] + lg[:, -1], W0 + jnp.sum(w, -1), S0 + jnp.sum(wz, -1), D, C0 + w @ rgb, med,
+                found | here)
 
-    col, A, dep, med, dist = jax.vmap(tile)(ids, x0, y0)
+    @jax.checkpoint
+    def body(carry, x):
+        tqi, fst, okq, uv, conic, op, rgb, z = x
+        carry = jax.tree_util.tree_map(lambda c, i: jnp.where(fst, i, c), carry, init)
+        skip = ~okq | jnp.all(jnp.exp(carry[0]) < t_min)
+        carry = jax.lax.cond(skip, lambda c, *a: c, chunk_fn, carry, tqi, uv, conic, op, rgb, z)
+        return carry, carry
+
+    _, ys = jax.lax.scan(body, init, xs)
+    lastc = jnp.clip(cend - 1, 0, NC - 1)
+    has = (nch > 0)
+    pick = lambda y, i: jnp.where(has.reshape((NT,) + (1,) * (y.ndim - 1)), y[lastc], i)  # noqa: E731
+    L, Wsum, Ssum, D, Col, med, _ = jax.tree_util.tree_map(pick, ys, jax.tree_util.tree_map(
+        lambda i: jnp.broadcast_to(i, (NT,) + i.shape), init))
 
     def img(a):
         a = a.reshape((nty, ntx, T, T) + a.shape[2:])
         a = jnp.swapaxes(a, 1, 2).reshape((nty * T, ntx * T) + a.shape[4:])
         return a[:H, :Wd]
 
-    over = jnp.maximum(counts - C, 0)
-    return SplatRender(color=img(col), alpha=img(A), depth=img(dep), median_depth=img(med),
-                       distortion=img(dist), overflow=jnp.sum(over).astype(jnp.int32),
-                       overflow_tiles=jnp.sum(over > 0).astype(jnp.int32),
-                       max_tile_count=jnp.max(counts).astype(jnp.int32), projected=proj)
+    A = img(Wsum)
+    color = img(Col) + (1.0 - A)[..., None] * bg
+    hasA = A > 0
+    depth = jnp.where(hasA, img(Ssum) / jnp.where(hasA, A, 1.0), 0.0)
+    lost = demand - cnt
+    return SplatRender(color=color, alpha=A, depth=depth, median_depth=img(med), distortion=img(D),
+                       overflow=jnp.maximum(total - B, 0).astype(jnp.int32),
+                       overflow_tiles=jnp.sum(lost > 0).astype(jnp.int32),
+                       max_tile_count=jnp.max(demand).astype(jnp.int32), projected=proj,
+                       pairs=total.astype(jnp.int32))
 
 
 def render_splats_dense(gaussians: Gaussians, camera: Camera, *, background=None, near: float = 0.01,
@@ -492,5 +647,5 @@ def _render_dense(gaussians, camera, background, near, dilation_px2, alpha_min, 
     return SplatRender(color=col.reshape(H, Wd, 3), alpha=A.reshape(H, Wd), depth=dep.reshape(H, Wd),
                        median_depth=med.reshape(H, Wd), distortion=dist.reshape(H, Wd), overflow=zero,
                        overflow_tiles=zero, max_tile_count=jnp.asarray(proj.uv.shape[0], jnp.int32),
-                       projected=proj)
+                       projected=proj, pairs=zero)
 

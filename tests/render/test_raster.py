@@ -114,17 +114,43 @@ def test_overflow_counted_never_silent():
     zs = np.arange(10, 0, -1, dtype=float) + 1.0  # far to near; the nearest has the highest id
     v = np.concatenate([[[-9, -9, z], [9, -9, z], [0, 9, z]] for z in zs])
     m = fsjax.Mesh(jnp.asarray(v), jnp.arange(30, dtype=jnp.int32).reshape(10, 3))
-    full = rasterize(m, cam, tile=8, capacity=10)
-    short = rasterize(m, cam, tile=8, capacity=4)
-    print(f"overflow: capacity 10 -> {int(full.overflow)} dropped; capacity 4 -> {int(short.overflow)} dropped, "
-          f"{int(short.incomplete.sum())} pixels flagged")
+    full = rasterize(m, cam, tile=8, capacity=4)  # eager: buffer sized from the demand, complete
+    demand = fsjax.render.count_fragments(m, cam)
+    B = 4 * 256  # room for the candidates of 4 of the 10 full-screen triangles
+    short = rasterize(m, cam, max_fragments=B)
+    print(f"overflow: demand {demand} candidates; eager default -> {int(full.overflow)} dropped; buffer {B} -> "
+          f"{int(short.overflow)} dropped, {int(short.incomplete.sum())} pixels flagged")
+    assert demand == 10 * 256
     assert int(full.overflow) == 0 and not bool(full.incomplete.any())
-    assert int(short.overflow) == 4 * 6  # 4 tiles x (10 - 4) triangles
+    assert bool(jnp.all(full.depth[full.alpha > 0] == 2.0))
+    assert int(short.overflow) == demand - B
     cov = short.alpha > 0
-    # with capacity 4 the nearest triangle is lost: the result differs, and every such pixel is flagged
+    # the nearest triangle (highest id) is lost: the result differs, and every such pixel is flagged
     assert bool(jnp.any(short.depth != full.depth))
     assert bool(jnp.all(jnp.where(short.depth != full.depth, short.incomplete, True)))
     assert bool(jnp.all(short.incomplete[cov]))
+    # under jit the traced default buffer is 4 x capacity x tiles (here 4 x 4 x 4 = 64 < demand)
+    j = jax.jit(lambda m: rasterize(m, cam, tile=8, capacity=4))(m)
+    assert int(j.overflow) == demand - 64 and bool(jnp.all(j.incomplete[j.alpha > 0]))
+
+
+def test_default_capacity_complete_on_bundled_bunny():
+    # issue 20: at the old default (capacity 256 triangles per 16 x 16 tile) the bundled bunny at
+    # 640 x 480 dropped 33,005 triangle-tile pairs and 1,453 pixels were wrong; an eager call now
+    # sizes its buffer from the measured demand and is complete.
+    b = fsjax.data.bunny()
+    V = np.asarray(b.vertices, float)
+    c = 0.5 * (V.min(0) + V.max(0))
+    K = fsjax.render.intrinsics_from_fov(640, 480, fov_x_deg=40.0)
+    R, t = fsjax.render.look_at(jnp.asarray(c + np.asarray([0.12, 0.09, 0.28])), jnp.asarray(c),
+                                up=jnp.asarray([0.0, 1.0, 0.0]))  # the tour's view of the bunny
+    cam = fsjax.Camera(K, width=640, height=480, R=R, t=t)
+    m = fsjax.Mesh(jnp.asarray(V), jnp.asarray(b.faces, jnp.int32))
+    r = rasterize(m, cam)
+    cover = float(r.alpha.mean())
+    print(f"bunny {m.faces.shape[0]} faces at 640 x 480, default arguments: overflow {int(r.overflow)}, "
+          f"incomplete {int(r.incomplete.sum())} pixels, coverage {cover:.3f}")
+    assert int(r.overflow) == 0 and not bool(r.incomplete.any()) and cover > 0.1
 
 
 def test_matches_bruteforce_and_interpolate_perspective_correct():

@@ -129,30 +129,48 @@ def eqx_replace(g, name, value):
     return Gaussians(**kw, valid=g.valid)
 
 
+def _brute_pairs(p, T=8, W=40, H=30):
+    """(splat, tile) pairs from the projected support boxes, in emission order: splats by depth,
+    tiles row-major within a splat."""
+    uv, ext, vis, z = (np.asarray(a) for a in (p.uv, p.extent, p.visible, p.depth))
+    pairs = []
+    for i in np.argsort(np.where(vis, z, np.inf), kind="stable"):
+        for ty in range(0, H, T):
+            for tx in range(0, W, T):
+                if (vis[i] and uv[i, 0] + ext[i, 0] >= tx and uv[i, 0] - ext[i, 0] <= tx + T - 1
+                        and uv[i, 1] + ext[i, 1] >= ty and uv[i, 1] - ext[i, 1] <= ty + T - 1):
+                    pairs.append((i, (ty // T) * (-(-W // T)) + tx // T))
+    return pairs
+
+
 def test_overflow_counted_and_surfaced():
     g, cam = _scene(n=60, seed=2), _cam()
-    cap = 6
-    a = S.render_splats(g, cam, tile_size=8, capacity=cap)
-    # brute-force tile demand from the projected support boxes
-    p = a.projected
-    uv, ext, vis = np.asarray(p.uv), np.asarray(p.extent), np.asarray(p.visible)
-    dropped, tiles_over = 0, 0
-    for ty in range(0, 30, 8):
-        for tx in range(0, 40, 8):
-            hit = (vis & (uv[:, 0] + ext[:, 0] >= tx) & (uv[:, 0] - ext[:, 0] <= tx + 7)
-                   & (uv[:, 1] + ext[:, 1] >= ty) & (uv[:, 1] - ext[:, 1] <= ty + 7))
-            dropped += max(int(hit.sum()) - cap, 0)
-            tiles_over += int(hit.sum()) > cap
+    B = 120  # global pair buffer, far below the demand: the farthest splats' pairs are dropped
+    a = S.render_splats(g, cam, tile_size=8, max_pairs=B)
+    pairs = _brute_pairs(a.projected)
+    tiles = np.array([t for _, t in pairs])
+    demand = np.bincount(tiles, minlength=20)
+    kept = np.bincount(tiles[:B], minlength=20)
     b = S.render_splats_dense(g, cam)
     diff = float(jnp.max(jnp.abs(a.color - b.color)))
-    print(f"splat overflow at capacity {cap}: {int(a.overflow)} splat-tile pairs dropped in "
-          f"{int(a.overflow_tiles)} tiles (brute force {dropped} in {tiles_over}); max |diff| vs dense {diff:.2f}")
-    assert int(a.overflow) == dropped > 0 and int(a.overflow_tiles) == tiles_over > 0
-    assert int(a.max_tile_count) > cap
+    print(f"splat overflow with a {B}-pair buffer: demand {int(a.pairs)} pairs (brute force {len(pairs)}), "
+          f"{int(a.overflow)} dropped in {int(a.overflow_tiles)} tiles (brute force "
+          f"{int(np.sum(demand > kept))}); max |diff| vs dense {diff:.2f}")
+    assert int(a.pairs) == len(pairs) > B
+    assert int(a.overflow) == len(pairs) - B
+    assert int(a.overflow_tiles) == int(np.sum(demand > kept)) > 0
+    assert int(a.max_tile_count) == int(demand.max())
     assert diff > 1e-3  # the overflow changes the image, and the count says so
-    big = S.render_splats(g, cam, tile_size=8, capacity=int(a.max_tile_count))
-    assert int(big.overflow) == 0
-    assert float(jnp.max(jnp.abs(big.color - b.color))) < 1e-9
+    # eager default: the buffer is sized from the measured demand, the render is exact (a
+    # legacy per-tile `capacity` only sizes the buffer under tracing)
+    big = S.render_splats(g, cam, tile_size=8, capacity=6)
+    assert int(big.overflow) == 0 and int(big.pairs) == len(pairs)
+    assert float(jnp.max(jnp.abs(big.color - b.color))) < 1e-12
+    # under jit the buffer is static: the result reports the demand (count_splat_pairs gives
+    # it eagerly), so a caller can re-run with a larger buffer (fsjax.fit.train_splats does)
+    t = jax.jit(lambda g: S.render_splats(g, cam, tile_size=8, capacity=6))(g)  # B = 6 x 20 tiles = 120
+    assert int(t.pairs) == S.count_splat_pairs(g, cam, tile_size=8) == len(pairs)
+    assert int(t.overflow) == int(a.overflow) and float(jnp.max(jnp.abs(t.color - a.color))) < 1e-12
 
 
 def _ground_splat(z_centre, scale_z):
@@ -255,6 +273,10 @@ def test_bad_input():
         S.render_splats(g, Camera(cam.K, width=40, height=30, dist=jnp.asarray([0.1, 0, 0, 0, 0])))
     with pytest.raises(ValueError, match="render_splats\\(capacity"):
         S.render_splats(g, cam, capacity=0)
+    with pytest.raises(ValueError, match="render_splats\\(max_pairs"):
+        S.render_splats(g, cam, max_pairs=-3)
+    with pytest.raises(ValueError, match="render_splats\\(chunk"):
+        S.render_splats(g, cam, chunk=0)
     with pytest.raises(ValueError, match="render_splats\\(tile_size"):
         S.render_splats(g, cam, tile_size=8.0)
     with pytest.raises(ValueError, match="alpha_min"):
@@ -277,3 +299,18 @@ def test_float32_runs_and_agrees():
     d = float(jnp.max(jnp.abs(a.color - b.color)))
     print(f"splat float32 vs float64 colour: max |diff| = {d:.1e}")
     assert d < 1e-3
+
+
+def test_default_is_exact_when_a_tile_holds_more_than_the_old_capacity():
+    # issue 20: the old default (256 splats per tile) dropped pairs silently into r.overflow; an
+    # eager call now sizes its pair buffer from the demand. 300 splats over one 16 x 16 tile.
+    rng = np.random.default_rng(7)
+    n = 300
+    g = Gaussians(np.c_[rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(3.0, 6.0, n)], np.log(rng.uniform(0.05, 0.3, (n, 3))),
+                  rng.normal(size=(n, 4)), rng.normal(-3.0, 0.5, n), rng.normal(0.0, 0.5, (n, 1, 3)))
+    cam = Camera.from_intrinsics(20.0, 20.0, 7.5, 7.5, width=16, height=16)
+    a = S.render_splats(g, cam)
+    b = S.render_splats_dense(g, cam)
+    d = max(float(jnp.max(jnp.abs(getattr(a, f) - getattr(b, f)))) for f in FIELDS)
+    print(f"one tile, {int(a.max_tile_count)} splats on it: overflow {int(a.overflow)}, max |diff| vs dense {d:.1e}")
+    assert int(a.max_tile_count) > 256 and int(a.overflow) == 0 and d < 1e-12
