@@ -52,25 +52,100 @@ def parse_stage(text: str) -> Any:
     return text
 
 
-def _cmd_ops(args: argparse.Namespace) -> int:
+def _fingerprint() -> str:
+    """Size and mtime of every module of the installed package: changes when any op could have."""
+    import hashlib
+    from pathlib import Path
+
+    h = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for f in sorted(root.rglob("*.py")):
+        st = f.stat()
+        h.update(f"{f.relative_to(root)}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()[:24]
+
+
+def _ops_table() -> list[dict]:
+    """The op catalogue as plain records, from a cache keyed by the package's files.
+
+    Listing needs every op family imported (JAX, all modules: seconds); the records are
+    cached as ``fsjax-ops-<fingerprint>.json`` in the compile-cache directory
+    (:func:`fsjax.compile_cache_dir`: ``FSJAX_CACHE_DIR``, else ``~/.cache/fsjax/xla``;
+    ``FSJAX_CACHE_DIR=off`` disables it) and rebuilt whenever a module of the package
+    changes, so a repeated ``fsjax ops`` does not load the library.
+    """
+    import json
+
+    from ._cache import compile_cache_dir
+
+    base = compile_cache_dir()  # FSJAX_CACHE_DIR=off: no cache, list from the live registry
+    path = None if base is None else base / f"fsjax-ops-{_fingerprint()}.json"
+    try:
+        return json.loads(path.read_text())
+    except (AttributeError, OSError, ValueError):
+        pass
     import fsjax
 
-    def sort(name):
-        if name is None:
-            return None
-        cls = getattr(fsjax, name, None)
-        if not (isinstance(cls, type) and issubclass(cls, fsjax.Sort)):
-            raise SystemExit(f"fsjax ops: unknown sort {name!r}")
-        return cls
+    rows = [{"name": s.name, "family": s.family, "takes": [t.__name__ for t in s.takes], "gives": s.gives.__name__,
+             "knobs": list(s.knobs), "summary": s.summary, "sig": s.signature_str()} for s in fsjax.list_ops()]
+    if path is not None:
+        try:
+            base.mkdir(parents=True, exist_ok=True)
+            for old in base.glob("fsjax-ops-*.json"):
+                old.unlink()
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(rows))
+            tmp.replace(path)
+        except OSError:  # a read-only cache directory: list without caching
+            pass
+    return rows
 
-    specs = fsjax.list_ops(family=args.family, takes=sort(args.takes), gives=sort(args.gives), search=args.search)
-    width = max((len(s.name) for s in specs), default=4)
+
+_SORT_NAMES = ("Image", "Color", "HSV", "Lab", "Region", "Labels", "Feature", "Contour", "Signal", "Volume",
+               "Points", "Mesh", "Gaussians", "Camera", "Depth", "Match", "RegionProps", "Fit", "Edges1D")
+
+
+def _cmd_ops(args: argparse.Namespace) -> int:
+    rows = _ops_table()
+    known = set(_SORT_NAMES) | {r["gives"] for r in rows} | {t for r in rows for t in r["takes"]}
+    for name in (args.takes, args.gives):
+        if name is not None and name not in known:
+            raise SystemExit(f"fsjax ops: unknown sort {name!r}; sorts: {', '.join(sorted(known))}")
+    fams = sorted({r["family"] for r in rows})
+    if args.family is not None and args.family not in fams:
+        raise ValueError(f"list_ops: unknown family {args.family!r}; known: {', '.join(fams)}")
+    q = (args.search or "").lower()
+    specs = [r for r in rows
+             if (args.family is None or r["family"] == args.family)
+             and (args.takes is None or r["takes"] == [args.takes])
+             and (args.gives is None or r["gives"] == args.gives)
+             and (not q or q in r["name"].lower() or q in r["family"].lower() or q in r["summary"].lower())]
+    width = max((len(s["name"]) for s in specs), default=4)
     for s in specs:
-        knobs = ", ".join(f"{k}" for k in s.knobs) or "-"
-        print(f"{s.name:<{width}}  {s.family:<11} {s.signature_str():<28} knobs: {knobs:<22} {s.summary}")
-    fams = sorted({s.family for s in specs})
+        knobs = ", ".join(s["knobs"]) or "-"
+        print(f"{s['name']:<{width}}  {s['family']:<11} {s['sig']:<28} knobs: {knobs:<22} {s['summary']}")
+    fams = sorted({s["family"] for s in specs})
     print(f"\n{len(specs)} ops in {len(fams)} families")
     return 0
+
+
+def _check_output(path: str, gives: type, bits: int) -> None:
+    """Refuse an output the pipeline result cannot be written to, before anything runs."""
+    import os
+
+    import fsjax
+
+    if gives is fsjax.Feature:
+        raise SystemExit("fsjax run: the pipeline gives a Feature (a number, printed); -o needs an image result")
+    if gives not in (fsjax.Image, fsjax.Color, fsjax.Region):
+        raise SystemExit(f"fsjax run: the pipeline gives {gives.__name__}; -o writes Image, Color or Region only")
+    if not path.lower().endswith(".png"):
+        raise SystemExit(f"fsjax run: -o {path!r}: only PNG is written (lossless, 8 or 16 bit); use a .png name")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise SystemExit(f"fsjax run: -o {path!r}: the folder {folder!r} does not exist")
+    if bits == 16 and gives is not fsjax.Image:
+        raise SystemExit(f"fsjax run: --bits 16 writes grey Image results only; the pipeline gives {gives.__name__}")
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -79,12 +154,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     stages = [parse_stage(s) for s in args.stages]
     pipe = fsjax.pipeline(stages)
+    if args.output:
+        _check_output(args.output, pipe.gives, args.bits)
     want_color = args.color or pipe.takes is fsjax.Color
     x = io.read_image(args.input, as_grey=not want_color)
     print(f"input: {args.input} -> {type(x).__name__} {tuple(x.data.shape)}"
           + (f" ({x.conversion})" if getattr(x, "conversion", None) else ""))
     if not isinstance(x, pipe.takes):
         raise SystemExit(f"fsjax run: stage 1 takes {pipe.takes.__name__}, the file gives {type(x).__name__}")
+    print(f"running {len(pipe)} stage(s) (each op compiles on its first call) ...", flush=True)
     outs = pipe.trace(x)
     for i, (st, y) in enumerate(zip(pipe.stages, outs)):
         print(f"stage {i + 1}: {st} -> {type(y).__name__}{_summary(y)}")
@@ -94,8 +172,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.output:
         if isinstance(y, fsjax.Feature):
             raise SystemExit("fsjax run: the result is a Feature (printed above); -o needs an image result")
-        io.write_image(args.output, y)
-        print(f"wrote {args.output}")
+        io.write_image(args.output, y, bit_depth=args.bits)
+        print(f"wrote {args.output} ({args.bits}-bit)")
+        if args.bits == 8 and "uint16" in str(getattr(x, "conversion", "")):
+            print("note: the input was 16-bit; the result was written as 8-bit (--bits 16 keeps 16)")
     return 0
 
 
@@ -118,6 +198,8 @@ def _summary(y: Any) -> str:
 
 
 def _cmd_evolve(args: argparse.Namespace) -> int:
+    if not args.quiet:
+        print(f"evolve: loading JAX and building the {args.problem!r} problem ...", flush=True)
     from .evolve.problems import make_problem
     from .evolve.runs import run_problem, write_run
     from .evolve.search import GAConfig
@@ -126,6 +208,10 @@ def _cmd_evolve(args: argparse.Namespace) -> int:
     problem = make_problem(args.problem, size=(args.size, args.size), n_train=args.n_train,
                            n_holdout=args.n_holdout, n_locked=args.n_train + args.n_holdout, n_stages=args.stages)
     cfg = GAConfig(pop=args.pop, gens=args.gens)
+    if not args.quiet:
+        print(f"evolve {args.problem}: {args.seeds} seed(s) x {args.gens} generations x {args.pop} individuals; "
+              "measuring the baselines, then compiling the population program (one compile per skeleton, "
+              "often 20-60 s on a laptop CPU) before the first generation ...", flush=True)
     report = run_problem(problem, seeds=range(args.seeds), cfg=cfg, vocabulary=vocab, progress=not args.quiet)
     paths = write_run(report, args.out)
     print(f"skeleton {report.skeleton}; compile {report.compile_seconds:.1f} s, total {report.seconds:.1f} s")
@@ -166,7 +252,8 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("run", help="run a pipeline on an image file")
     p.add_argument("input")
     p.add_argument("stages", nargs="+", help="name | name:param=value,... | name@a[,b]")
-    p.add_argument("-o", "--output")
+    p.add_argument("-o", "--output", help="write the result to this PNG (checked before the pipeline runs)")
+    p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="bit depth of the -o PNG (16: grey only)")
     p.add_argument("--color", action="store_true", help="read the file as Color (default: grey)")
     p.set_defaults(func=_cmd_run)
 

@@ -17,6 +17,15 @@ When a ``knobs`` array of shape ``(n_stages, 2)`` is passed at call time, it
 sets every stage's knob-mapped parameters (explicit named parameters of a stage
 still win); stages without knobs ignore their row.
 
+Out-of-range knobs fail closed. Concrete knob values outside ``[0, 1]`` (or NaN)
+raise ``ValueError`` at the call. Traced ones (the pipeline under ``jit``/``vmap``
+of the caller, or a knob array built inside a transformation) are checked on the
+values: a stage whose live knob is out of range runs on the clipped value and
+its output is poisoned (floating fields NaN, validity flags False; a ``Region`` or
+``Labels`` stage raises at run time through ``equinox.error_if``), and the NaN
+propagates through the following stages. Knob rows of stages without knobs (and
+of knobs overridden by a named parameter) are ignored.
+
 Stage numbers in error messages are 1-based (for people); the fields of
 :class:`PipelineTypeError` are 0-based (for programs).
 """
@@ -31,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .registry import OpSpec, get_op
+from .registry import OpSpec, get_op, poison
 from .types import Sort, is_concrete
 
 __all__ = ["apply", "pipeline", "run_pipeline", "Pipeline", "PipelineTypeError", "Stage"]
@@ -63,7 +72,15 @@ def apply(x: Any, op: str, a: Any = None, b: Any = None, **params: Any) -> Any:
       x: the input sort, or a tuple of sorts for multi-input ops.
       op: registered op name.
       a, b: knob values in ``[0, 1]`` (``None`` keeps the default); traced values
-        are fine, so ``jax.vmap`` over ``a`` compiles once.
+        are fine, so ``jax.vmap`` over ``a`` compiles once. A concrete knob outside
+        ``[0, 1]`` (or NaN) raises ``ValueError``. A *traced* one cannot be refused
+        before it has a value, so the call fails closed instead: the op runs on the
+        knob clipped into ``[0, 1]`` (bounded work) and its output is poisoned --
+        every floating field NaN and the validity flags (``valid``, ``converged``,
+        ...) False; a sort with no floating field (``Region``, ``Labels``) raises at
+        run time through ``equinox.error_if``. Named parameters that are traced
+        follow the op's own rule (e.g. ``gaussian``: a traced sigma above
+        ``max_sigma`` gives NaN).
       **params: named keyword parameters (a parameter cannot be set both by a
         knob and by name).
 
@@ -85,7 +102,7 @@ def apply(x: Any, op: str, a: Any = None, b: Any = None, **params: Any) -> Any:
             f"apply({spec.name!r}): unknown parameter(s) {sorted(unknown)}; "
             f"{spec.name} takes {', '.join(spec.params) or 'no parameters'}"
         )
-    return spec.fn(*inputs, **kp, **params)
+    return poison(spec.fn(*inputs, **kp, **params), spec.knob_out_of_range(a, b), who=f"apply({spec.name!r})")
 
 
 def _as_inputs(spec: OpSpec, x: Any, *, who: str) -> tuple:
@@ -119,7 +136,18 @@ class Stage:
         else:
             kp = self.spec.knob_params(self.a, self.b, strict=False)
         kp = {k: v for k, v in kp.items() if k not in params}
-        return self.spec.raw(x, **kp, **params)
+        out = self.spec.raw(x, **kp, **params)
+        # a traced knob outside [0, 1] (or NaN): fail closed instead of computing a clamped value
+        return poison(out, self.knob_bad(knob_row), who=f"pipeline stage ({self.name})")
+
+    def knob_bad(self, knob_row: Any = None) -> Any:
+        """Traced bool: a live traced knob of this stage is outside ``[0, 1]`` (``None``: none traced)."""
+        if knob_row is None:
+            return None
+        params = dict(self.params)
+        live = [knob_row[i] if i < len(self.spec.knobs) and self.spec.knob_names[i] not in params else None
+                for i in range(2)]
+        return self.spec.knob_out_of_range(*live)
 
     def __str__(self) -> str:
         if self.params:
@@ -210,9 +238,15 @@ class Pipeline:
         return f"Pipeline({self.takes.__name__} -> {chain})"
 
     def _run(self, x: Any, knobs: Any = None) -> Any:
+        bad = None
         for i, st in enumerate(self.stages):
-            x = st.call(x, None if knobs is None else knobs[i])
-        return x
+            row = None if knobs is None else knobs[i]
+            x = st.call(x, row)
+            b = st.knob_bad(row)
+            bad = b if bad is None else (bad if b is None else bad | b)
+        # a poisoned stage poisons the result even when a later stage (a threshold, a count)
+        # would turn its NaN into a plausible value
+        return poison(x, bad, who="pipeline")
 
     def _check_call(self, x: Any, knobs: Any) -> None:
         if not isinstance(x, self.takes):

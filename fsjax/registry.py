@@ -199,13 +199,76 @@ class OpSpec:
                 continue
             pname = names[i]
             if is_concrete(u):
-                uval = np.asarray(u, dtype=float)
+                try:
+                    uval = np.asarray(u, dtype=float)
+                except (TypeError, ValueError):
+                    raise TypeError(f"{who}: knob {label!r} ({pname}) must be a number in [0, 1], "
+                                    f"got {type(u).__name__} {u!r}") from None
+                if isinstance(u, (str, bytes)):
+                    raise TypeError(f"{who}: knob {label!r} ({pname}) must be a number in [0, 1], got str {u!r}")
                 if uval.size and (not np.all(np.isfinite(uval)) or bool(np.any((uval < 0) | (uval > 1)))):
                     raise ValueError(
                         f"{who}: knob {label!r} ({pname}) must be in [0, 1], got {_fmt(u)}"
                     )
-            out[pname] = self.knobs[pname].to_param(u)
+                out[pname] = self.knobs[pname].to_param(u)
+            else:
+                # a traced knob cannot be refused here: map its value clipped into [0, 1] (NaN -> 0)
+                # so the op does bounded work; callers that promise fail-closed results
+                # (apply, pipelines) poison the output with knob_out_of_range()
+                uc = jnp.clip(jnp.nan_to_num(u, nan=0.0), 0.0, 1.0)
+                out[pname] = self.knobs[pname].to_param(uc)
         return out
+
+    def knob_out_of_range(self, a=None, b=None):
+        """Traced bool: a *traced* knob among ``a``, ``b`` that is outside ``[0, 1]`` or NaN.
+
+        ``None`` when no knob is traced (concrete knobs are refused eagerly by
+        :meth:`knob_params`). Knobs the op does not have are ignored.
+        """
+        bad = None
+        for i, u in enumerate((a, b)):
+            if u is None or is_concrete(u) or i >= len(self.knobs):
+                continue
+            b_i = ~((u >= 0) & (u <= 1))
+            bad = b_i if bad is None else bad | b_i
+        return bad
+
+
+_FLAG_FIELDS = ("valid", "converged", "found", "vertex_valid", "face_valid")
+
+
+def poison(out: Any, bad: Any, *, who: str) -> Any:
+    """Fail closed on a traced condition ``bad`` (a traced bool, or ``None`` for nothing to do).
+
+    Where ``bad`` holds, every floating leaf of the sort ``out`` becomes NaN and its
+    validity flags (``valid``, ``converged``, ``found``, mesh ``vertex_valid`` /
+    ``face_valid``) become False, so the result cannot pass for a measurement. A sort with
+    no floating leaf (``Region``, ``Labels``) cannot carry NaN: there the call raises at run
+    time through ``equinox.error_if`` (under ``vmap`` when any member is bad).
+    """
+    if bad is None:
+        return out
+    import equinox as eqx
+    import jax
+
+    leaves = jax.tree_util.tree_leaves(out)
+    if not any(hasattr(v, "dtype") and jnp.issubdtype(v.dtype, jnp.inexact) for v in leaves):
+        first = next(i for i, v in enumerate(leaves) if hasattr(v, "dtype"))
+        leaves[first] = eqx.error_if(leaves[first], bad, f"{who}: a traced knob or parameter is out of range "
+                                     "and this sort cannot carry NaN")
+        return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(out), leaves)
+
+    def nan(v):
+        if hasattr(v, "dtype") and jnp.issubdtype(v.dtype, jnp.inexact):
+            return jnp.where(bad, jnp.nan, v)
+        return v
+
+    out = jax.tree_util.tree_map(nan, out)
+    for f in _FLAG_FIELDS:
+        v = getattr(out, f, None)
+        if v is not None and hasattr(v, "dtype") and v.dtype == jnp.bool_:
+            out = eqx.tree_at(lambda o, f=f: getattr(o, f), out, jnp.where(bad, False, v))
+    return out
 
 
 def _fmt(u) -> str:

@@ -74,7 +74,7 @@ def _describe(x: Any) -> str:
 
 
 def _as_array(x: Any, *, sort: str, field: str, kind: str, min_ndim: int,
-              trailing: tuple[int, ...] = ()) -> Array:
+              trailing: tuple[int, ...] = (), spatial: int = 0) -> Array:
     """Convert ``x`` to a JAX array and check rank, trailing shape and dtype kind.
 
     ``kind`` is one of ``"float"``, ``"bool"``, ``"int"``.
@@ -126,6 +126,14 @@ def _as_array(x: Any, *, sort: str, field: str, kind: str, min_ndim: int,
             raise ValueError(
                 f"{sort}({field}=...): expected shape ({want}), got {tuple(np.shape(x))}"
             )
+    if spatial:
+        shp = tuple(np.shape(x))
+        axes = shp[ndim - len(trailing) - spatial: ndim - len(trailing)]
+        if 0 in axes:
+            raise ValueError(
+                f"{sort}({field}=...): empty {sort} (spatial size {'x'.join(map(str, axes))}, "
+                f"shape {shp}); fsjax ops need at least one pixel per axis"
+            )
     x = jnp.asarray(x)
     if kind == "int" and x.dtype != jnp.int32:
         x = x.astype(jnp.int32)
@@ -145,6 +153,23 @@ class Sort(eqx.Module):
     """
 
     _float_fields = ()
+    _array_field = None  # the field np.asarray(sort) returns (None: no single array)
+
+    def __array__(self, dtype=None, copy=None):
+        """``np.asarray(sort)``: the sort's main array (``Image.data``, ``Points.xyz``, ...).
+
+        Sorts made of several equally important arrays (``Mesh``, ``Camera``, ``Fit``, ...)
+        raise ``TypeError`` naming their fields instead of giving a 0-d object array.
+        """
+        name = type(self).__name__
+        if self._array_field is None:
+            fields = [f for f in self.__dataclass_fields__ if not f.startswith("_")]
+            raise TypeError(f"np.asarray(fsjax.{name}): a {name} has no single array; "
+                            f"use one of its fields ({', '.join(fields)})")
+        arr = np.asarray(getattr(self, self._array_field))
+        if dtype is not None:
+            arr = arr.astype(dtype, copy=False)
+        return arr
 
     def check(self, *, op: str, arg: str) -> None:
         """Eager validation of an op input (skipped for traced values).
@@ -182,12 +207,14 @@ class Image(Sort):
     (e.g. ``"uint8 / 255"``); it is ``None`` for data made in float.
     """
 
+    _array_field = "data"
+
     data: Float[Array, "*batch H W"]
     conversion: str | None = eqx.field(static=True, default=None)
     _float_fields = ("data",)
 
     def __init__(self, data: Any, conversion: str | None = None):
-        self.data = _as_array(data, sort="Image", field="data", kind="float", min_ndim=2)
+        self.data = _as_array(data, sort="Image", field="data", kind="float", min_ndim=2, spatial=2)
         self.conversion = conversion
 
     @classmethod
@@ -229,12 +256,15 @@ def _from_uint(sort: str, data: Any, bit_depth: int | None, trailing: tuple[int,
 class Color(Sort):
     """Linear RGB image, shape ``(*batch, H, W, 3)``, float in ``[0, 1]``."""
 
+    _array_field = "data"
+
     data: Float[Array, "*batch H W 3"]
     conversion: str | None = eqx.field(static=True, default=None)
     _float_fields = ("data",)
 
     def __init__(self, data: Any, conversion: str | None = None):
-        self.data = _as_array(data, sort="Color", field="data", kind="float", min_ndim=3, trailing=(3,))
+        self.data = _as_array(data, sort="Color", field="data", kind="float", min_ndim=3, trailing=(3,),
+                              spatial=2)
         self.conversion = conversion
 
     @classmethod
@@ -258,11 +288,14 @@ class HSV(Sort):
     value in ``[0, 1]``.
     """
 
+    _array_field = "data"
+
     data: Float[Array, "*batch H W 3"]
     _float_fields = ("data",)
 
     def __init__(self, data: Any):
-        self.data = _as_array(data, sort="HSV", field="data", kind="float", min_ndim=3, trailing=(3,))
+        self.data = _as_array(data, sort="HSV", field="data", kind="float", min_ndim=3, trailing=(3,),
+                              spatial=2)
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -272,11 +305,14 @@ class HSV(Sort):
 class Lab(Sort):
     """CIE L*a*b* image, shape ``(*batch, H, W, 3)``; L* in ``[0, 100]``, D65 white."""
 
+    _array_field = "data"
+
     data: Float[Array, "*batch H W 3"]
     _float_fields = ("data",)
 
     def __init__(self, data: Any):
-        self.data = _as_array(data, sort="Lab", field="data", kind="float", min_ndim=3, trailing=(3,))
+        self.data = _as_array(data, sort="Lab", field="data", kind="float", min_ndim=3, trailing=(3,),
+                              spatial=2)
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -286,10 +322,12 @@ class Lab(Sort):
 class Region(Sort):
     """Foreground mask, shape ``(*batch, H, W)``, bool."""
 
+    _array_field = "data"
+
     data: Bool[Array, "*batch H W"]
 
     def __init__(self, data: Any):
-        self.data = _as_array(data, sort="Region", field="data", kind="bool", min_ndim=2)
+        self.data = _as_array(data, sort="Region", field="data", kind="bool", min_ndim=2, spatial=2)
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -303,12 +341,14 @@ class Labels(Sort):
     when a fixed label capacity was exceeded and labels were lost.
     """
 
+    _array_field = "data"
+
     data: Int[Array, "*batch H W"]
     count: Int[Array, "*batch"]
     truncated: Bool[Array, "*batch"]
 
     def __init__(self, data: Any, count: Any = None, truncated: Any = False):
-        self.data = _as_array(data, sort="Labels", field="data", kind="int", min_ndim=2)
+        self.data = _as_array(data, sort="Labels", field="data", kind="int", min_ndim=2, spatial=2)
         if count is None:
             if not is_concrete(self.data):
                 raise ValueError("Labels(count=None) needs a concrete label array; pass count under jit")
@@ -323,6 +363,8 @@ class Labels(Sort):
 
 class Feature(Sort):
     """One measured number, shape ``(*batch,)``; ``unit`` names its unit (static)."""
+
+    _array_field = "value"
 
     value: Float[Array, "*batch"]
     unit: str = eqx.field(static=True, default="")
@@ -346,6 +388,8 @@ class Contour(Sort):
     ``valid`` marks used slots; ``truncated`` is True when the capacity was
     exceeded. ``closed`` tells whether the valid points form a closed curve.
     """
+
+    _array_field = "points"
 
     points: Float[Array, "*batch N 2"]
     valid: Bool[Array, "*batch N"]
@@ -372,6 +416,8 @@ class Contour(Sort):
 class Signal(Sort):
     """1-D profile or time series, shape ``(*batch, N)``; ``rate`` samples per ``unit``."""
 
+    _array_field = "data"
+
     data: Float[Array, "*batch N"]
     rate: float = eqx.field(static=True, default=1.0)
     unit: str = eqx.field(static=True, default="px")
@@ -392,13 +438,15 @@ class Signal(Sort):
 class Volume(Sort):
     """Scalar volume, shape ``(*batch, D, H, W)``; ``spacing`` is ``(dz, dy, dx)`` in ``unit``."""
 
+    _array_field = "data"
+
     data: Float[Array, "*batch D H W"]
     spacing: tuple[float, float, float] = eqx.field(static=True, default=(1.0, 1.0, 1.0))
     unit: str = eqx.field(static=True, default="mm")
     _float_fields = ("data",)
 
     def __init__(self, data: Any, spacing: tuple[float, float, float] = (1.0, 1.0, 1.0), unit: str = "mm"):
-        self.data = _as_array(data, sort="Volume", field="data", kind="float", min_ndim=3)
+        self.data = _as_array(data, sort="Volume", field="data", kind="float", min_ndim=3, spatial=3)
         sp = tuple(float(s) for s in spacing)
         if len(sp) != 3 or not all(s > 0 for s in sp):
             raise ValueError(f"Volume(spacing=...): expected three positive numbers (dz, dy, dx), got {spacing}")
@@ -421,6 +469,8 @@ class Points(Sort):
     Optional ``normals`` ``(*batch, N, 3)`` (unit length) and ``colors``
     ``(*batch, N, 3)`` linear RGB. ``truncated`` flags lost points.
     """
+
+    _array_field = "xyz"
 
     xyz: Float[Array, "*batch N 3"]
     valid: Bool[Array, "*batch N"]
@@ -588,12 +638,14 @@ class Depth(Sort):
     0 or NaN means "no return"; NaN is therefore allowed in ``z``.
     """
 
+    _array_field = "z"
+
     z: Float[Array, "*batch H W"]
     camera: Camera
     _float_fields = ()
 
     def __init__(self, z: Any, camera: Camera):
-        self.z = _as_array(z, sort="Depth", field="z", kind="float", min_ndim=2)
+        self.z = _as_array(z, sort="Depth", field="z", kind="float", min_ndim=2, spatial=2)
         if not isinstance(camera, Camera):
             raise TypeError(f"Depth(camera=...): expected a Camera, got {type(camera).__name__}")
         self.camera = camera

@@ -70,6 +70,66 @@ def test_run_errors(png, capsys):
     assert "did you mean 'gaussian'" in capsys.readouterr().err
 
 
+def test_run_output_refused_before_the_pipeline_runs(png, tmp_path, monkeypatch):
+    """Issue 20 item 6: a JPEG name, a missing folder, --bits 16 on a Region and -o on a Feature
+    result are refused before the image is read or any stage runs (before: after the pipeline)."""
+    import fsjax.io
+
+    def boom(*a, **k):
+        raise AssertionError("the input was read although the output is refused")
+
+    monkeypatch.setattr(fsjax.io, "read_image", boom)
+    cases = [(["gaussian", "-o", str(tmp_path / "x.jpg")], "only PNG"),
+             (["gaussian", "-o", str(tmp_path / "no_such_dir" / "x.png")], "does not exist"),
+             (["otsu", "-o", str(tmp_path / "m.png"), "--bits", "16"], "grey Image results only"),
+             (["mean", "-o", str(tmp_path / "m.png")], "gives a Feature")]
+    for argv, msg in cases:
+        with pytest.raises(SystemExit, match=msg):
+            main(["run", str(png), *argv])
+
+
+def test_run_bits_16(tmp_path, capsys):
+    """A 16-bit input written back with --bits 16 keeps its 16-bit values (identity pipeline stage)."""
+    from PIL import Image as PILImage
+
+    src = (np.arange(48 * 64).reshape(48, 64) * 21).astype(np.uint16)
+    inp, out = tmp_path / "in16.png", tmp_path / "out16.png"
+    PILImage.fromarray(src).save(inp)
+    assert main(["run", str(inp), "gaussian:sigma=0.01", "-o", str(out), "--bits", "16"]) == 0
+    assert "(16-bit)" in capsys.readouterr().out
+    back = np.asarray(PILImage.open(out))
+    assert back.dtype in (np.uint16, np.int32) and int(np.abs(back.astype(np.int64) - src).max()) == 0
+    assert main(["run", str(inp), "gaussian:sigma=0.01", "-o", str(out)]) == 0
+    assert "--bits 16 keeps 16" in capsys.readouterr().out
+
+
+def test_help_and_cached_ops_listing_do_not_load_the_library(tmp_path):
+    """Issue 20 item 6: ``import fsjax`` is lazy (no JAX), so ``fsjax --help`` does not load the
+    library, and a repeated ``fsjax ops --search`` reads the cached catalogue. Load, not time,
+    is asserted (timing is never a test condition); fsjax.io is an attribute of the package."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, FSJAX_CACHE_DIR=str(tmp_path))
+    probe = ("import sys\nfrom fsjax.cli import main\n"
+             "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+             "print('JAX_LOADED' if 'jax' in sys.modules else 'NO_JAX')\n")
+
+    def run(*argv):
+        return subprocess.run([sys.executable, "-c", probe, *argv], capture_output=True, text=True, env=env,
+                              timeout=300).stdout
+
+    assert run("--help").strip().endswith("NO_JAX")
+    first = run("ops", "--search", "otsu")
+    assert "otsu_level" in first and first.strip().endswith("JAX_LOADED")  # builds the cache
+    again = run("ops", "--search", "otsu")
+    assert again.replace("NO_JAX", "") == first.replace("JAX_LOADED", "") and again.strip().endswith("NO_JAX")
+    code = "import fsjax, sys; print('jax' in sys.modules, fsjax.io.read_image.__name__)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300).stdout.split() == ["False", "read_image"]
+
+
 def test_tour_quick(tmp_path):
     """``run_tour`` end to end (report and figures) on the 2-D sections.
 

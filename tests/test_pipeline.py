@@ -99,3 +99,29 @@ def test_pipeline_bad_calls(img):
         fsjax.pipeline([("gaussian", {"sgma": 1.0})])
     with pytest.raises(ValueError, match="pipeline stage 1 \\(gaussian\\): knob 'a' \\(sigma\\) must be in"):
         fsjax.pipeline([("gaussian", 2.0)])
+
+
+def test_traced_out_of_range_knobs_fail_closed():
+    """Issue 20 item 3: a traced knob outside [0, 1] poisons the output (before: a clamped,
+    plausible image). Float sorts become NaN; a Region result raises at run time."""
+    x = fsjax.Image(jnp.linspace(0.0, 1.0, 12 * 12, dtype=jnp.float32).reshape(12, 12))
+    f = jax.jit(lambda a: fsjax.apply(x, "gaussian", a=a).data)
+    assert bool(jnp.all(jnp.isnan(f(1.5)))) and bool(jnp.all(jnp.isnan(f(-0.1)))) and bool(jnp.all(jnp.isnan(f(jnp.nan))))
+    good = f(0.5)
+    assert bool(jnp.all(jnp.isfinite(good)))
+    assert bool(jnp.allclose(good, fsjax.apply(x, "gaussian", a=0.5).data, atol=1e-6))
+    # vmap: only the bad member is poisoned
+    v = jax.vmap(lambda a: fsjax.apply(x, "gaussian", a=a).data)(jnp.array([0.5, 1.5], jnp.float32))
+    assert bool(jnp.all(jnp.isfinite(v[0]))) and bool(jnp.all(jnp.isnan(v[1])))
+    # pipelines: an Image result is NaN; the poison survives a later stage that would hide it
+    p = fsjax.pipeline(["gaussian", "sobel_amp"])
+    y = jax.jit(lambda k: p(x, k).data)(jnp.full((2, 2), 2.0, jnp.float32))
+    assert bool(jnp.all(jnp.isnan(y)))
+    pr = fsjax.pipeline(["gaussian", "sobel_amp", "otsu"])
+    run = jax.jit(lambda k: pr(x, k).data)
+    assert int(run(jnp.full((3, 2), 0.5, jnp.float32)).sum()) > 0
+    with pytest.raises(Exception, match="out of range"):
+        jax.block_until_ready(run(jnp.full((3, 2), 2.0, jnp.float32)))
+    # a knob row of a stage without knobs is ignored, as documented
+    y2 = jax.jit(lambda k: p(x, k).data)(jnp.array([[0.5, 0.5], [7.0, 7.0]], jnp.float32))
+    assert bool(jnp.all(jnp.isfinite(y2)))

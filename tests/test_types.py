@@ -49,3 +49,21 @@ def test_sorts_are_pytrees_and_vmap():
     assert d.camera.width == 640 and cam.R.shape == (3, 3)
     lab = fsjax.Labels(jnp.array([[0, 1], [2, 2]]))
     assert int(lab.count) == 2
+
+
+def test_empty_raster_refused_and_array_protocol():
+    """Issue 20 item 6: a 0x0 Image used to be accepted (ops then failed with raw NumPy messages);
+    np.asarray(sort) used to give a 0-d object array."""
+    for make in (lambda: fsjax.Image(np.zeros((0, 0))), lambda: fsjax.Image(np.zeros((4, 0))),
+                 lambda: fsjax.Region(np.zeros((0, 3), bool)), lambda: fsjax.Color(np.zeros((0, 2, 3))),
+                 lambda: fsjax.Volume(np.zeros((2, 0, 2)))):
+        with pytest.raises(ValueError, match="empty"):
+            make()
+    img = fsjax.Image(jnp.arange(6.0).reshape(2, 3))
+    a = np.asarray(img)
+    assert a.shape == (2, 3) and a.dtype == np.asarray(img.data).dtype and a[1, 2] == 5.0
+    assert np.asarray(img, dtype=np.float32).dtype == np.float32
+    assert np.asarray(fsjax.Points(jnp.zeros((4, 3)))).shape == (4, 3)
+    assert float(np.asarray(fsjax.Feature(2.5))) == 2.5
+    with pytest.raises(TypeError, match="Mesh has no single array; use one of its fields"):
+        np.asarray(fsjax.Mesh(jnp.zeros((3, 3)), jnp.array([[0, 1, 2]])))

@@ -44,9 +44,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..registry import LogKnob, register
+from ..registry import LogKnob, poison, register
 from ..types import Edges1D, Image, Signal, is_concrete
-from ._common import check_choice, check_positive, check_range, check_static_int, correlate1d
+from ._common import (
+    check_choice,
+    check_positive,
+    check_range,
+    check_static_int,
+    correlate1d,
+    support_exceeded,
+)
 from ._contours import gauss_deriv_taps
 
 __all__ = ["measure_projection", "measure_pos", "measure_pairs"]
@@ -368,8 +375,9 @@ def measure_pos(img: Image, /, *, row: float | None = None, col: float | None = 
     cap = check_static_int(op, "capacity", capacity, lo=1)
     x, st, (row, col, angle_deg, length) = _edge_call(op, img, row, col, angle_deg, length, width, sigma,
                                                       threshold, truncate, mode, max_sigma, cap)
-    return _measure_pos_core(x, row, col, angle_deg, length, sigma, threshold, capacity=cap, polarity=polarity,
-                             **st)
+    out = _measure_pos_core(x, row, col, angle_deg, length, sigma, threshold, capacity=cap, polarity=polarity,
+                            **st)
+    return poison(out, support_exceeded(sigma, truncate, st["radius"]), who=op)  # traced sigma > support
 
 
 @register(family="caliper", takes=Image, gives=Edges1D, knobs={"sigma": _SIGMA_KNOB, "threshold": _THRESH_KNOB},
@@ -436,5 +444,6 @@ def measure_pairs(img: Image, /, *, row: float | None = None, col: float | None 
     cap = check_static_int(op, "capacity", capacity, lo=2)
     x, st, (row, col, angle_deg, length) = _edge_call(op, img, row, col, angle_deg, length, width, sigma,
                                                       threshold, truncate, mode, max_sigma, cap)
-    return _measure_pairs_core(x, row, col, angle_deg, length, sigma, threshold, capacity=cap,
-                               transition=transition, **st)
+    out = _measure_pairs_core(x, row, col, angle_deg, length, sigma, threshold, capacity=cap,
+                              transition=transition, **st)
+    return poison(out, support_exceeded(sigma, truncate, st["radius"]), who=op)  # traced sigma > support

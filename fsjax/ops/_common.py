@@ -104,13 +104,15 @@ def eps(dtype: Any) -> float:
     return float(jnp.finfo(dtype).eps)
 
 
-def _concrete_float(v: Any):
+def _concrete_float(v: Any, op: str = "", name: str = ""):
     if not is_concrete(v):
         return None
+    if isinstance(v, (str, bytes)):  # np.asarray("2", dtype=float) would quietly accept it
+        raise TypeError(f"{op}: argument {name!r} must be a number, got {type(v).__name__} {v!r}")
     try:
         arr = np.asarray(v, dtype=float)
     except (TypeError, ValueError):
-        return None
+        raise TypeError(f"{op}: argument {name!r} must be a number, got {type(v).__name__} {v!r}") from None
     return arr
 
 
@@ -120,7 +122,7 @@ def check_range(op: str, name: str, v: Any, lo: float | None = None, hi: float |
 
     Traced values are not checked (they come from knobs, which are range-mapped).
     """
-    arr = _concrete_float(v)
+    arr = _concrete_float(v, op, name)
     if arr is None:
         return
     if not np.all(np.isfinite(arr)):
@@ -129,6 +131,17 @@ def check_range(op: str, name: str, v: Any, lo: float | None = None, hi: float |
         raise ValueError(f"{op}: argument {name!r} must be {'>' if lo_open else '>='} {lo:g}, got {v}")
     if hi is not None and (np.any(arr >= hi) if hi_open else np.any(arr > hi)):
         raise ValueError(f"{op}: argument {name!r} must be {'<' if hi_open else '<='} {hi:g}, got {v}")
+
+
+def support_exceeded(sigma: Any, truncate: float, radius: int) -> Any:
+    """Traced bool: a *traced* ``sigma`` whose kernel radius ``int(truncate * sigma + 0.5)``
+    exceeds the static support ``radius`` (or is NaN); ``None`` for a concrete ``sigma``
+    (whose support is then exact). Ops poison their output with it
+    (:func:`fsjax.registry.poison`) rather than silently truncate the kernel."""
+    if is_concrete(sigma):
+        return None
+    s = jnp.asarray(sigma)
+    return ~(jnp.floor(truncate * s + 0.5) <= radius)
 
 
 def check_positive(op: str, name: str, v: Any) -> None:

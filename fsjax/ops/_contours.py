@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..registry import LinKnob, LogKnob, register
+from ..registry import LinKnob, LogKnob, poison, register
 from ..synth import register_pool
 from ..types import Contour, Feature, Image, is_concrete
 from ._common import (
@@ -54,6 +54,7 @@ from ._common import (
     check_range,
     check_static_int,
     correlate1d,
+    support_exceeded,
 )
 
 __all__ = [
@@ -254,9 +255,12 @@ def subpixel_edges(img: Image, /, *, sigma: float = 1.0, threshold: float = 0.05
     x = img.data
     if x.shape[0] < 3 or x.shape[1] < 3:
         raise ValueError(f"{op}: argument 'img' must be at least 3 x 3, got {x.shape}")
-    pts, valid, trunc = _subpixel_core(x, sigma, threshold, radius=_radius(sigma, truncate, max_sigma),
+    rad = _radius(sigma, truncate, max_sigma)
+    pts, valid, trunc = _subpixel_core(x, sigma, threshold, radius=rad,
                                        truncate=float(truncate), mode=mode, capacity=cap, direction=direction)
-    return Contour(pts, valid, trunc, closed=False)
+    # a traced sigma wider than the max_sigma support: NaN points, nothing valid (fail closed)
+    return poison(Contour(pts, valid, trunc, closed=False), support_exceeded(sigma, truncate, rad),
+                  who=op)
 
 
 # ---------------------------------------------------------------------------

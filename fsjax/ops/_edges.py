@@ -42,8 +42,8 @@ from jaxtyping import Array, Float
 
 from ..registry import LinKnob, LogKnob, register
 from ..types import Image
-from ._common import check_choice, check_mode, check_positive, check_range, correlate1d
-from ._filters import gaussian_weights
+from ._common import check_choice, check_mode, check_positive, check_range, correlate1d, support_exceeded
+from ._filters import _gaussian_radius, gaussian_weights
 
 __all__ = [
     "sobel_amp",
@@ -114,7 +114,14 @@ def _gauss_filter(x, sigma, orders, truncate, max_sigma, mode):
     """Separable Gaussian (derivative) filter; ``orders = (row_order, col_order)``."""
     wr = _gauss_taps(sigma, orders[0], truncate, max_sigma, x.dtype)
     wc = _gauss_taps(sigma, orders[1], truncate, max_sigma, x.dtype)
-    return correlate1d(correlate1d(x, wr, axis=-2, mode=mode), wc, axis=-1, mode=mode)
+    out = correlate1d(correlate1d(x, wr, axis=-2, mode=mode), wc, axis=-1, mode=mode)
+    return _poison_wide(out, sigma, truncate, wr.shape[0] // 2)
+
+
+def _poison_wide(out, sigma, truncate, radius):
+    """NaN where a traced sigma needs more than the static ``radius`` taps (fail closed)."""
+    bad = support_exceeded(sigma, truncate, radius)
+    return out if bad is None else jnp.where(bad, jnp.nan, out)
 
 
 def _check_sigma(op, sigma, truncate, mode):
@@ -131,7 +138,8 @@ def _structure_tensor(x, sigma, truncate, max_sigma, mode):
     def smooth(v):
         return correlate1d(correlate1d(v, w, axis=-2, mode=mode), w, axis=-1, mode=mode)
 
-    return smooth(gy * gy), smooth(gx * gy), smooth(gx * gx)
+    r = w.shape[0] // 2
+    return tuple(_poison_wide(smooth(v), sigma, truncate, r) for v in (gy * gy, gx * gy, gx * gx))
 
 
 # --- 3x3 gradient operators ------------------------------------------------
@@ -635,4 +643,6 @@ def structure_coherence(img: Image, /, *, sigma: float = 2.0, truncate: float = 
     tr = jrr + jcc
     diff = _safe_hypot(jrr - jcc, 2.0 * jrc)
     pos = tr > 0
-    return Image(jnp.where(pos, diff / jnp.where(pos, tr, 1.0), 0.0))
+    out = jnp.where(pos, diff / jnp.where(pos, tr, 1.0), 0.0)
+    # the where above would turn a poisoned (NaN) tensor into 0: poison the ratio itself
+    return Image(_poison_wide(out, sigma, truncate, _gaussian_radius(sigma, truncate, max_sigma)))

@@ -12,9 +12,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..registry import LogKnob, register
+from ..registry import LogKnob, poison, register
 from ..types import Image, Region
-from ._common import check_range
+from ._common import check_range, support_exceeded
 from ._edges import (
     _SMALL_SIGMA_KNOB,
     _check_sigma,
@@ -22,6 +22,7 @@ from ._edges import (
     _grad3,
     _safe_hypot,
 )
+from ._filters import _gaussian_radius
 
 __all__ = [
     "canny",
@@ -161,7 +162,9 @@ def canny(img: Image, /, *, sigma: float = 1.0, high_threshold: float = 0.025, l
     high = jnp.asarray(high_threshold, dtype=m.dtype)
     weak = cand & (m >= low_ratio * high)
     strong = cand & (m >= high)
-    return Region(_hysteresis(strong, weak))
+    # a traced sigma wider than the max_sigma support: a Region cannot hold NaN, so it raises
+    bad = support_exceeded(sigma, truncate, _gaussian_radius(sigma, truncate, max_sigma))
+    return poison(Region(_hysteresis(strong, weak)), bad, who="canny")
 
 
 @register(family="edges", takes=Image, gives=Region,

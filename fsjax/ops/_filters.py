@@ -45,6 +45,8 @@ from ._common import (
     check_static_int,
     correlate1d,
     pad2d,
+    pad_axis,
+    support_exceeded,
 )
 
 __all__ = [
@@ -412,9 +414,112 @@ def gaussian(img: Image, /, *, sigma: float = 1.0, truncate: float = 4.0, mode: 
     return Image(_gaussian(img.data, sigma, truncate, mode, max_sigma))
 
 
+# Kernels wider than the image. Shift-and-add costs 2r + 1 taps per pixel and per axis, and its
+# program grows with r (sigma = 200 px took 49 s, sigma = 1e6 px ran for minutes). Every mode
+# maps a sample at offset k to a fixed source sample, so on an axis of n samples the whole
+# correlation is one (n, n) matrix A[i, j] = sum of the taps w[k] with fold(i + k) = j. When the
+# kernel is wider than the axis (2r + 1 > n) A is built once on the host in float64 -- the taps
+# summed by residue (periodic modes) or by tail (nearest, constant) in chunks, O(r + n^2) -- and
+# applied as a matrix product, O(n) per pixel whatever sigma is; a long kernel that fits the
+# axis runs as a loop over the taps (program size constant). The result is the same sampled,
+# truncated, normalised kernel (equal to SciPy's to rounding). Bound: at most _MAX_TAPS taps are
+# summed (truncate * sigma <= 2^24 px, sigma <= ~4.2e6 px at truncate 4); a traced sigma keeps
+# the shift-and-add over its static max_sigma support, whose radius is at most _MAX_TRACED_RADIUS.
+_MAX_TAPS = 2 ** 25
+_UNROLL_TAPS = 129  # longer concrete kernels leave the unrolled shift-and-add
+_MAX_TRACED_RADIUS = 1024
+_CHUNK = 2 ** 20
+
+
+def _tap_sums(sigma: float, r: int, period: int | None):
+    """Host float64 sums of the taps ``g[k] = exp(-k^2 / 2 sigma^2)``, ``|k| <= r``.
+
+    Returns ``(total, by_residue)`` with ``by_residue[q] = sum_{k = q mod period} g[k]`` when
+    ``period`` is given, else ``(total, tail)`` with ``tail[m] = sum_{k >= m} g[k]`` for
+    ``m = 0 .. r + 1``... truncated to the first ``n`` entries by the caller.
+    """
+    total = 0.0
+    acc = np.zeros(period) if period else None
+    for k0 in range(-r, r + 1, _CHUNK):
+        k = np.arange(k0, min(k0 + _CHUNK, r + 1), dtype=np.float64)
+        g = np.exp(-0.5 * (k / sigma) ** 2)
+        total += float(g.sum())
+        if period:
+            acc += np.bincount(np.mod(k, period).astype(np.int64), weights=g, minlength=period)
+    return total, acc
+
+
+@functools.lru_cache(maxsize=32)
+def _wide_gaussian_matrix(n: int, sigma: float, truncate: float, mode: str) -> np.ndarray:
+    """``(n, n)`` float64 matrix of the Gaussian correlation along an axis of ``n`` samples."""
+    r = int(truncate * sigma + 0.5)
+    i = np.arange(n)
+    a = np.zeros((n, n))
+    if mode in ("reflect", "mirror", "wrap"):
+        period = {"reflect": 2 * n, "mirror": max(2 * n - 2, 1), "wrap": n}[mode]
+        total, f = _tap_sums(sigma, r, period)
+        q = np.arange(period)
+        src = _fold_index(n, 0, period - 1 + n, mode)  # fold(e) for e = 0 .. n + period - 2
+        np.add.at(a, (np.repeat(i, period), src[(i[:, None] + q[None, :]).ravel()]), np.tile(f, n))
+        return a / total
+    # nearest / constant: offsets inside the axis hit one sample each; for "nearest" the
+    # two tails beyond the ends pile onto the end samples, for "constant" they read 0
+    total, _ = _tap_sums(sigma, r, None)
+    d = i[None, :] - i[:, None]  # k = j - i, |k| <= n - 1
+    a = np.where(np.abs(d) <= r, np.exp(-0.5 * (d / sigma) ** 2), 0.0)
+    if mode == "nearest":
+        # tail[m] = sum_{k = m}^{r} g[k] for m = 1 .. n (by symmetry also the left tails)
+        head = np.exp(-0.5 * (np.arange(0, n + 1) / sigma) ** 2) * (np.arange(0, n + 1) <= r)
+        half = (total + 1.0) / 2.0  # sum_{k >= 0} g[k]
+        tail = half - np.concatenate([[0.0], np.cumsum(head)[:-1]])  # tail[m], m = 0 .. n
+        a[:, 0] += tail[i + 1]  # k <= -(i + 1): source clipped to 0
+        a[:, n - 1] += tail[n - i]  # k >= n - i: source clipped to n - 1
+    return a / total
+
+
+def _corr1d_loop(x, w, axis: int, mode: str):
+    """``correlate1d`` as a ``fori_loop`` over the taps: the program size does not grow with them."""
+    axis = axis % x.ndim
+    n, r = x.shape[axis], w.shape[0] // 2
+    xp = pad_axis(x, r, r, axis, mode)
+
+    def body(k, acc):
+        return acc + w[k] * jax.lax.dynamic_slice_in_dim(xp, k, n, axis=axis)
+
+    return jax.lax.fori_loop(0, w.shape[0], body, jnp.zeros_like(x))
+
+
+def _gaussian_wide(x, sigma: float, truncate: float, mode: str, rad: int):
+    """Concrete-sigma Gaussian with a long kernel: per axis a folded matrix (kernel wider than
+    the axis) or a tap loop; compile time and memory do not grow with sigma."""
+    taps = None
+    for axis in (x.ndim - 2, x.ndim - 1):
+        n = x.shape[axis]
+        if 2 * rad + 1 > n:
+            a = jnp.asarray(_wide_gaussian_matrix(n, float(sigma), float(truncate), mode), x.dtype)
+            x = jnp.moveaxis(jnp.tensordot(a, x, axes=([1], [axis]), precision=jax.lax.Precision.HIGHEST), 0, axis)
+        else:
+            if taps is None:
+                taps = _gaussian_taps(float(sigma), rad, float(truncate), x.dtype)
+            x = _corr1d_loop(x, taps, axis, mode)
+    return x
+
+
 def _gaussian(x, sigma, truncate, mode, max_sigma):
     rad = _gaussian_radius(sigma, truncate, max_sigma)
-    return _gaussian_core(x, sigma, radius=rad, truncate=float(truncate), mode=mode)
+    if is_concrete(sigma):
+        if 2 * rad + 1 > _MAX_TAPS:
+            raise ValueError(f"gaussian: argument 'sigma' ({float(sigma):g} px at truncate {truncate:g}) needs "
+                             f"{2 * rad + 1} taps; the bound is {_MAX_TAPS} (truncate * sigma <= {_MAX_TAPS // 2})")
+        if 2 * rad + 1 > _UNROLL_TAPS:  # long kernel: bounded program (matrix per axis or tap loop)
+            return _gaussian_wide(x, sigma, truncate, mode, rad)
+    elif rad > _MAX_TRACED_RADIUS:
+        raise ValueError(f"gaussian: argument 'max_sigma' ({max_sigma:g}) gives a static support of {rad} px for a "
+                         f"traced sigma; the bound is {_MAX_TRACED_RADIUS} px (truncate * max_sigma)")
+    out = _gaussian_core(x, sigma, radius=rad, truncate=float(truncate), mode=mode)
+    # a traced sigma wider than the static support: NaN, never a silently truncated kernel
+    bad = support_exceeded(sigma, truncate, rad)
+    return out if bad is None else jnp.where(bad, jnp.nan, out)
 
 
 @register(
@@ -700,8 +805,9 @@ def bilateral(img: Image, /, *, sigma_spatial: float = 1.0, sigma_range: float =
     check_positive(op, "max_sigma_spatial", max_sigma_spatial)
     check_mode(op, mode)
     rad = _gaussian_radius(sigma_spatial, truncate, max_sigma_spatial)
-    return Image(_bilateral_core(img.data, sigma_spatial, sigma_range, radius=rad,
-                                 truncate=float(truncate), mode=mode))
+    out = _bilateral_core(img.data, sigma_spatial, sigma_range, radius=rad, truncate=float(truncate), mode=mode)
+    bad = support_exceeded(sigma_spatial, truncate, rad)  # traced sigma_spatial above its support: NaN
+    return Image(out if bad is None else jnp.where(bad, jnp.nan, out))
 
 
 @functools.partial(jax.jit, static_argnames=("radius", "truncate", "mode"))
