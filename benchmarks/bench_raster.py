@@ -187,6 +187,14 @@ def write_docs(rows, load0, load1):
         "Use float64 where grazing-incidence depth matters (a fix would need edge functions in face-local",
         "coordinates, keeping watertightness; not done).",
         "",
+        "## Time vs count, both renderers",
+        "",
+        "![time vs splat count and face count](figures/bench_render_scaling.png)",
+        "",
+        "Left: `python benchmarks/bench_splat.py` (splat training step, render, render + gradient at 128 x 128;",
+        "the step-time goals 0.3 s at 10k and 1 s at 50k dotted; table in `docs/splatting.md`). Right: this",
+        "page's table. Drawn by `python benchmarks/bench_splat.py --chart` from `benchmarks/results/*.json`.",
+        "",
     ]
     out = ROOT / "docs" / "benchmarks_render.md"
     out.write_text("\n".join(lines))
@@ -199,7 +207,12 @@ def main():
     ap.add_argument("--write-docs", action="store_true")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--faces", default="12500,50000,200000")
+    ap.add_argument("--from-json", action="store_true", help="write the docs from benchmarks/results/raster.json")
     a = ap.parse_args()
+    if a.from_json:
+        d = json.loads((ROOT / "benchmarks" / "results" / "raster.json").read_text())
+        write_docs(d["rows"], d["load_before"], d["load_after"])
+        return
     load0 = load_average()
     if a.quick:
         rows = run(256, [20000], 2)

@@ -13,11 +13,12 @@ Workload: Spot (Crane et al.) rendered by fsjax's mesh rasteriser into 12 views 
 * Null / reference: :func:`fsjax.render.render_splats_dense` (every splat on every pixel) at
   1k splats, where it fits in memory; max |diff| of the two images beside the time.
 
-The fixed-capacity renderer this replaced is not importable any more; its figures (measured
-on this machine before the change) are quoted in ``docs/splatting.md``.
+The fixed-capacity renderer this replaced is loaded from git (``--before``) for a same-process
+ratio.
 
 Run ``python benchmarks/bench_splat.py`` (``--quick``: 1k and 10k only, no 512 px frame;
-``--json PATH`` to save the rows).
+``--json PATH`` to save the rows; ``--before REV --counts 10000,50000``: render + gradient of
+the renderer at git revision ``REV`` beside the current one, in one process; ``--chart``).
 """
 
 from __future__ import annotations
@@ -105,6 +106,72 @@ def run(counts, viewer: bool, repeats: int, steps: int):
     return rows
 
 
+def _module_at(rev: str):
+    """fsjax/render/splat.py as it was at git revision ``rev``, loaded as a private module (the
+    fixed-capacity renderer, for a before/after ratio in one process)."""
+    import subprocess
+    import types
+
+    src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:fsjax/render/splat.py"], check=True,
+                         capture_output=True, text=True).stdout
+    src = src.replace("from ..types import", "from fsjax.types import").replace(
+        "from .camera import", "from fsjax.render.camera import")
+    mod = types.ModuleType("splat_before")
+    exec(compile(src, f"splat.py@{rev}", "exec"), mod.__dict__)
+    return mod
+
+
+def before_after(rev: str, counts, repeats: int):
+    """Render + gradient (w.r.t. the means) of the renderer at ``rev`` (fixed tile capacity) and of
+    the current one, same splats, same camera, same process, interleaved repeats."""
+    import jax
+    import jax.numpy as jnp
+
+    import fsjax
+    from fsjax.fit import init_from_mesh, mesh_views
+    from fsjax.render import count_splat_pairs, render_splats
+    from fsjax.render.splat import _bucket
+
+    old = _module_at(rev)
+    data = mesh_views(fsjax.data.spot(), n_views=12, width=128, height=128, holdout_every=6)
+    rows = []
+    for n in counts:
+        g = init_from_mesh(jax.random.key(0), data, n, n)
+        cam = _cam(data, int(data.train[0]), jnp.float32)
+        B = _bucket(count_splat_pairs(g, cam))
+        new = render_splats(g, cam, max_pairs=B)
+        exact_cap = int(-(-int(new.max_tile_count) // 64) * 64)
+        caps = [512] + ([exact_cap] if exact_cap <= 2048 else [])
+
+        def loss(render, **kw):
+            return jax.jit(jax.grad(lambda m, g: jnp.sum(render(
+                fsjax.Gaussians(m, g.log_scales, g.quats, g.opacity_logits, g.colors, valid=g.valid), cam,
+                **kw).color)))
+
+        comp = {"new": loss(render_splats, max_pairs=B)}
+        for c in caps:
+            comp[f"before cap {c}"] = loss(old.render_splats, capacity=c)
+        fns = dict(comp)
+        row = {"splats": n, "pairs": int(new.pairs), "max_tile_count": int(new.max_tile_count),
+               "load_before": os.getloadavg()[0]}
+        for c in caps:
+            o = old.render_splats(g, cam, capacity=c)
+            row[f"before cap {c} overflow"] = int(o.overflow)
+            row[f"before cap {c} maxdiff"] = float(jnp.max(jnp.abs(o.color - new.color)))
+        for k, f in fns.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(g.means, g))
+            row[f"{k} compile+first_s"] = time.perf_counter() - t0
+        tm = time_round_robin({k: (lambda f=f: jax.block_until_ready(f(g.means, g))) for k, f in fns.items()},
+                              repeats=repeats, warmup=0)
+        for k, t in tm.items():
+            row[f"{k}_s"] = t.median
+        row["load_after"] = os.getloadavg()[0]
+        print(row, flush=True)
+        rows.append(row)
+    return rows
+
+
 def chart():
     """docs/figures/bench_render_scaling.png: time vs splat count and vs face count (saved JSON)."""
     import matplotlib
@@ -144,10 +211,17 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--steps", type=int, default=8)
     ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "splat.json"))
+    ap.add_argument("--before", default=None, help="git revision of the renderer to compare against "
+                    "(render + gradient only), e.g. 1fb1c3a")
     ap.add_argument("--chart", action="store_true", help="only draw the chart from the saved JSON files")
     a = ap.parse_args()
     if a.chart:
         chart()
+        return
+    if a.before:
+        rows = before_after(a.before, [int(x) for x in a.counts.split(",")], a.repeats)
+        out = {"rev": a.before, "load_before": load_average(), "rows": rows}
+        Path(str(ROOT / "benchmarks" / "results" / "splat_before_after.json")).write_text(json.dumps(out, indent=1))
         return
     load0 = load_average()
     if a.quick:

@@ -61,7 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..types import Camera, Mesh, is_concrete
-from .splat import _bucket
+from .splat import _bucket, _slot_owner
 
 __all__ = ["Raster", "rasterize", "interpolate", "vertex_normals", "count_fragments"]
 
@@ -272,15 +272,15 @@ def _search_fragments(boxes, H, W, B, K, Cj, Nn, Dt, near, fdt):
     x0, x1, y0, y1, on, wx, wy = boxes
     F = wx.shape[0]
     k = wx * wy
-    # float cumulative sum saturated at B + 1: exact below 2^24 (float32) / 2^53 (float64) and free of
+    # prefix sums in floating point: exact below 2^24 (float32) / 2^53 (float64) candidates and free of
     # int32 wrap-around for absurd demands
-    endf = jnp.cumsum(k.astype(fdt))
+    endf = jax.lax.associative_scan(jnp.add, k.astype(fdt))
     total = endf[-1]
-    end = jnp.minimum(endf, B + 1).astype(jnp.int32)
+    start = jnp.minimum(endf - k, B).astype(jnp.int32)
     p = jnp.arange(B, dtype=jnp.int32)
-    f = jnp.clip(jnp.searchsorted(end, p, side="right"), 0, F - 1).astype(jnp.int32)
-    j = p - (end[f] - k[f])
-    live = p < end[-1]
+    f = _slot_owner(start, k, B)
+    j = p - start[f]
+    live = p < jnp.minimum(total, B)
     wxf = jnp.maximum(wx[f], 1)
     px = x0[f] + j % wxf
     py = y0[f] + j // wxf
@@ -303,7 +303,7 @@ def _search_fragments(boxes, H, W, B, K, Cj, Nn, Dt, near, fdt):
     one = cut.astype(jnp.int32)
     diff = jnp.zeros((H + 1, W + 1), jnp.int32)
     diff = diff.at[y0, x0].add(one).at[y0, x1 + 1].add(-one).at[y1 + 1, x0].add(-one).at[y1 + 1, x1 + 1].add(one)
-    lost = jnp.cumsum(jnp.cumsum(diff, axis=0), axis=1)[:H, :W] > 0
+    lost = jax.lax.associative_scan(jnp.add, jax.lax.associative_scan(jnp.add, diff, axis=0), axis=1)[:H, :W] > 0
     return fid, total, lost
 
 

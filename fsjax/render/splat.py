@@ -368,6 +368,16 @@ def _bucket(n: int) -> int:
     return int(max(1024, 1 << int(np.ceil(np.log2(max(1.125 * float(n), 1.0))))))
 
 
+def _slot_owner(start, k, B):
+    """Segment holding each slot ``p < B`` of a buffer filled segment after segment (segment ``i``
+    occupies ``[start_i, start_i + k_i)``): a scatter of the non-empty segments' indices at their
+    starts and a max-scan. O(B log B) in ``log B`` vector passes; a per-slot binary search
+    (``searchsorted``) measured ~40x slower on XLA:CPU for B = 2^19."""
+    at = jnp.where((k > 0) & (start < B), start, B)
+    owner = jnp.zeros((B,), jnp.int32).at[at].max(jnp.arange(k.shape[0], dtype=jnp.int32), mode="drop")
+    return jax.lax.associative_scan(jnp.maximum, owner)
+
+
 def _tile_boxes(proj, H, W, T):
     """Inclusive tile ranges ``tx0..tx1``, ``ty0..ty1`` of each splat's exact support box, the
     tiles per splat ``k`` and the grid size. A tile ``[x0, x0 + T - 1]`` is touched when
@@ -512,10 +522,10 @@ def _render_tiled(gaussians, camera, background, near, dilation_px2, alpha_min, 
     # pairs emitted in depth order (the buffer keeps the nearest B), then one stable sort by tile
     order = jnp.argsort(jnp.where(on, jax.lax.stop_gradient(proj.depth), jnp.inf)).astype(jnp.int32)
     ko = k[order]
-    end = jnp.cumsum(ko)
+    end = jax.lax.associative_scan(jnp.add, ko)
     total = end[-1]
     p = jnp.arange(B, dtype=jnp.int32)
-    s = jnp.clip(jnp.searchsorted(end, p, side="right"), 0, N - 1)
+    s = _slot_owner(end - ko, ko, B)
     sid = order[s]
     j = p - (end[s] - ko[s])
     wj = jnp.maximum(wx[sid], 1)
