@@ -40,6 +40,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..types import Points
+from ..ops._points_search import _BRUTE_LIMIT, build_index
 from .icp import ICPResult, _as_cloud, estimate_normals, icp, knn
 from .rigid import NO_HYPOTHESIS, OK, TOO_FEW, _weighted_kabsch, kabsch_umeyama, reason_message
 
@@ -351,9 +352,10 @@ def global_registration(
 @functools.partial(jax.jit, static_argnames=("rounds",))
 def _point_refit(coarse, xs, xt, distance, rounds):
     r, t = coarse.R, coarse.t
+    index = build_index(xt, k=4) if xs.shape[0] * xt.shape[0] > _BRUTE_LIMIT else None  # built once
     for _ in range(rounds):
         p = xs @ r.T + t
-        j, d2 = knn(xt, p, 1)
+        j, d2 = knn(xt, p, 1, index=index)
         fit = kabsch_umeyama(xs, xt[jnp.maximum(j[:, 0], 0)], weights=(d2[:, 0] <= distance**2).astype(xs.dtype))
         r = jnp.where(fit.valid, fit.R, r)
         t = jnp.where(fit.valid, fit.t, t)

@@ -12,16 +12,29 @@ then keep the ``overlap`` fraction with the smallest distances (trimmed ICP, Che
 
 * ``point_to_point`` (Besl & McKay 1992): the weighted Umeyama/Kabsch closed form -- the exact
   minimiser of the per-iteration problem, so no iterative solver is used for it.
-* ``point_to_plane`` (Chen & Medioni 1992): residuals ``n_q . (exp(xi) p - q)`` minimised over the
-  SE(3) tangent ``xi`` by ``optimistix.least_squares`` (Gauss-Newton, ``inner_steps`` steps,
-  ``throw=False``), centred on the target centroid for conditioning. Target normals: the
+* ``point_to_plane`` (Chen & Medioni 1992): residuals ``n_q . (dR p + dt - q)`` linearised about the
+  increment ``xi = (w, v)``: ``a_i = (p_i x n_i, n_i)``; the 6 x 6 normal equations and their
+  right-hand side come from one reduction, the 7 x 7 moment ``sum_i w_i [a_i, r_i] [a_i, r_i]^T``,
+  solved by Cholesky (``inner_steps`` Gauss-Newton steps on the same pairs). Target normals: the
   ``Points.normals`` when given, else PCA normals of the ``normal_k`` nearest target points.
-* ``gicp`` (Segal, Haehnel & Thrun 2009, plane-to-plane): residuals ``L_i^T (exp(xi) p_i - q_i)``
-  with ``L_i L_i^T = (C_q + R C_p R^T)^-1``; covariances from the ``cov_k`` nearest neighbours,
-  regularised to eigenvalues ``(eps, 1, 1)`` (``eps = 1e-3``) as in the paper. Same solver.
+* ``gicp`` (Segal, Haehnel & Thrun 2009, plane-to-plane): residuals ``d_i = dR p_i + dt - q_i``
+  weighted by ``W_i = (C_q + R C_p R^T)^-1`` (closed-form symmetric 3 x 3 inverse); covariances
+  from the ``cov_k`` nearest neighbours, regularised to eigenvalues ``(eps, 1, 1)`` (``eps = 1e-3``)
+  as in the paper; the normal equations ``sum_i A_i^T W_i A_i`` (``A_i = [-[p_i]_x, I, d_i]``) again
+  in one reduction.
 
-The loop is a ``lax.while_loop`` that stops when the increment is below ``rot_tol`` (radians)
-and ``trans_tol`` (relative to the target's RMS radius), or at ``max_iterations`` (reported).
+Scale: both clouds are centred on the target centroid and divided by the target's RMS radius
+before anything else, so every test is unit-free and a cloud in metres behaves like the same
+cloud in millimetres, in float32 as in float64. The singularity test compares the smallest
+eigenvalue of the 6 x 6 normal matrix to ``1e4 eps`` times its largest, in that normalised frame.
+
+The loop is one ``lax.while_loop`` whose turn costs one nearest-neighbour pass plus O(N)
+reductions; it stops when the pose increment is below ``rot_tol`` (radians) and ``trans_tol``
+(relative to the target's RMS radius), or at ``max_iterations`` (reported). Tolerances below the
+dtype's resolution (``64 eps``: 7.6e-6 in float32, 1.4e-14 in float64) are raised to it -- the
+increment of a float32 run stalls at rounding noise and would otherwise never "converge".
+Measured float32 accuracy on the bunny (10 deg, 20,000 points, ``docs/benchmarks_icp.md``):
+the same rotation error as float64 to within 1e-4 deg.
 
 The record's ``rmse`` is the RMS point distance of the final (trimmed) correspondences,
 ``inlier_fraction`` the fraction of valid source points whose nearest target point is within
@@ -34,10 +47,12 @@ point-to-point, 6 otherwise; reason 2), non-finite coordinates among the valid p
 too few correspondences within the distance gate (reason 2) or singular normal equations / collinear
 pairs (reason 3) give NaN pose, NaN rmse and ``converged=False``.
 
-Neighbour search: :func:`knn` here is an exact chunked brute force (memory O(chunk x N), any
-dimension, also used for 33-D FPFH descriptors). ``fsjax.ops.knn`` (sorted-cell grid) has the same
-signature; swapping it in was measured slower to compile (minutes for the ICP loop) and not faster
-to run at these sizes on the shared 2-core machine, so the brute force stays for now.
+Neighbour search: one index of the target, built once per call and reused by every iteration
+inside the compiled loop, and by the normals / covariances / spacing pass
+(:func:`fsjax.ops.build_index`, a sorted-cell grid with two coarser levels for the far queries of
+the first iterations; exact, equal to ``cKDTree``). Small problems (``N M <= 2**22``) use the
+same module's blocked brute force instead (same answers, cheaper to compile). No (N, M) array is
+formed anywhere. :func:`knn` here delegates to that one implementation.
 """
 
 from __future__ import annotations
@@ -48,11 +63,20 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ..ops._points_search import (
+    _BRUTE_LIMIT,
+    GridIndex,
+    _batched,
+    _brute_batch,
+    _brute_knn,
+    _brute_queries,
+    _brute_refs,
+    build_index,
+    query_knn,
+)
 from ..types import Points
 from .rigid import (
     DEGENERATE,
@@ -78,19 +102,21 @@ _METHODS = ("point_to_point", "point_to_plane", "gicp")
 # ---------------------------------------------------------------------------
 
 
-def knn(ref_xyz, query_xyz, k: int, *, ref_valid=None):
+def knn(ref_xyz, query_xyz, k: int, *, ref_valid=None, index: GridIndex | None = None):
     """Exact k nearest neighbours of each query point among the valid reference points.
 
-    Works for any dimension D (used for 3-D points and for 33-D FPFH descriptors). Distances are
-    computed as explicit differences for D <= 4 (exact) and by the ``|a|^2 - 2 a.b + |b|^2``
-    expansion (clamped at 0) for larger D. Queries are processed in chunks so memory stays
-    O(chunk x N).
+    One implementation with :func:`fsjax.ops.knn`: 3-D points go through the sorted-cell grid
+    (:func:`fsjax.ops.build_index` / :func:`fsjax.ops.query_knn`, exact, equal to
+    ``cKDTree``), small problems and other dimensions (33-D FPFH descriptors) through the same
+    module's blocked brute force (memory O(block), never an (N, M) matrix; for D > 4 the
+    distances use the ``|a|^2 - 2 a.b + |b|^2`` expansion, clamped at 0).
 
     Args:
         ref_xyz: ``(N, D)`` reference points.
         query_xyz: ``(M, D)`` query points.
-        k: number of neighbours (static int, ``1 <= k``).
+        k: number of neighbours (static int, ``1 <= k``; ``k <= 64`` on the grid).
         ref_valid: ``(N,)`` mask of usable reference points.
+        index: an index of ``ref_xyz`` built once by :func:`fsjax.ops.build_index` (reused).
 
     Returns:
         ``idx`` int32 ``(M, k)`` (ascending distance, -1 when fewer than k valid references) and
@@ -98,46 +124,33 @@ def knn(ref_xyz, query_xyz, k: int, *, ref_valid=None):
     """
     ref = jnp.asarray(ref_xyz)
     qry = jnp.asarray(query_xyz)
+    dtype = jnp.result_type(ref.dtype, qry.dtype, jnp.float32)
+    ref, qry = ref.astype(dtype), qry.astype(dtype)
     n, d = ref.shape
     m = qry.shape[0]
-    kk = min(int(k), n)
+    k = int(k)
     rv = jnp.ones(n, bool) if ref_valid is None else jnp.asarray(ref_valid, bool)
-    chunk = int(max(1, min(512, 2_000_000 // max(1, n * (d if d <= 4 else 1)))))
-    mp = -(-m // chunk) * chunk
-    qp = jnp.pad(qry, ((0, mp - m), (0, 0)))
-    rn = jnp.sum(ref * ref, -1)
-
-    def one(qc):
-        if d <= 4:
-            diff = qc[:, None, :] - ref[None, :, :]
-            d2 = jnp.sum(diff * diff, -1)
-        else:
-            d2 = jnp.maximum(jnp.sum(qc * qc, -1)[:, None] - 2.0 * qc @ ref.T + rn[None, :], 0.0)
-        d2 = jnp.where(rv[None, :], d2, jnp.inf)
-        # k rounds of argmin + mask: several times faster than lax.top_k on CPU for k <= 32
-        rows = jnp.arange(d2.shape[0])
-        ids, ds = [], []
-        for i in range(kk):
-            j = jnp.argmin(d2, axis=1)
-            ids.append(j)
-            ds.append(d2[rows, j])
-            if i + 1 < kk:
-                d2 = d2.at[rows, j].set(jnp.inf)
-        return jnp.stack(ids, 1).astype(jnp.int32), jnp.stack(ds, 1)
-
-    idx, d2 = jax.lax.map(one, qp.reshape(mp // chunk, chunk, d))
-    idx = idx.reshape(mp, kk)[:m]
-    d2 = d2.reshape(mp, kk)[:m]
-    idx = jnp.where(jnp.isfinite(d2), idx, -1)
-    if kk < k:
-        idx = jnp.pad(idx, ((0, 0), (0, k - kk)), constant_values=-1)
-        d2 = jnp.pad(d2, ((0, 0), (0, k - kk)), constant_values=jnp.inf)
-    return idx, d2
+    if n == 0 or m == 0:
+        return jnp.full((m, k), -1, jnp.int32), jnp.full((m, k), jnp.inf, dtype)
+    if d == 3 and k <= 64 and (index is not None or n * m > _BRUTE_LIMIT):
+        return query_knn(build_index(ref, rv, k=k) if index is None else index, qry, k)
+    return _brute_knn(ref, rv, qry, k)
 
 
-def _neighbour_cov(xyz, valid, k: int):
+def _neighbour_cov(xyz, valid, k: int, index=None):
     """Covariance (3, 3) of each point's k nearest valid neighbours (incl. itself) and the count used."""
-    idx, _ = knn(xyz, xyz, k, ref_valid=valid)
+    idx, _ = knn(xyz, xyz, k, ref_valid=valid, index=index)
+    return _cov_from_idx(xyz, idx)
+
+
+def _gicp_cov(cov, eps: float = 1e-3):
+    _, vec = jnp.linalg.eigh(cov)
+    lam = jnp.asarray([eps, 1.0, 1.0], cov.dtype)
+    return jnp.einsum("nij,j,nkj->nik", vec, lam, vec)
+
+
+def _cov_from_idx(xyz, idx):
+    """Covariance of the neighbours ``idx`` (N, k; -1 = none) of each point, and their count."""
     ok = idx >= 0
     nb = xyz[jnp.maximum(idx, 0)]
     w = ok.astype(xyz.dtype)
@@ -149,20 +162,20 @@ def _neighbour_cov(xyz, valid, k: int):
     return cov, cnt
 
 
-def estimate_normals(xyz, valid=None, *, k: int = 10):
+def estimate_normals(xyz, valid=None, *, k: int = 10, index: GridIndex | None = None):
     """Unit PCA normals: eigenvector of the smallest eigenvalue of the k-neighbour covariance.
 
     The sign is arbitrary (point-to-plane residuals do not depend on it). Points with fewer than
-    3 valid neighbours get NaN normals.
+    3 valid neighbours get NaN normals. ``index``: the cloud's index, reused when given.
     """
     xyz = jnp.asarray(xyz)
     valid = jnp.ones(xyz.shape[0], bool) if valid is None else jnp.asarray(valid, bool)
-    cov, cnt = _neighbour_cov(xyz, valid, k)
+    cov, cnt = _neighbour_cov(xyz, valid, k, index)
     _, vec = jnp.linalg.eigh(cov)
     return jnp.where((cnt >= 3)[:, None], vec[..., 0], jnp.nan)
 
 
-def local_covariances(xyz, valid=None, *, k: int = 20, eps: float = 1e-3):
+def local_covariances(xyz, valid=None, *, k: int = 20, eps: float = 1e-3, index: GridIndex | None = None):
     """GICP covariances (Segal et al. 2009): ``U diag(eps, 1, 1) U^T`` of each k-neighbour covariance.
 
     ``U`` holds the eigenvectors of the local covariance, smallest first, so the surface normal
@@ -170,10 +183,8 @@ def local_covariances(xyz, valid=None, *, k: int = 20, eps: float = 1e-3):
     """
     xyz = jnp.asarray(xyz)
     valid = jnp.ones(xyz.shape[0], bool) if valid is None else jnp.asarray(valid, bool)
-    cov, _ = _neighbour_cov(xyz, valid, k)
-    _, vec = jnp.linalg.eigh(cov)
-    lam = jnp.asarray([eps, 1.0, 1.0], xyz.dtype)
-    return jnp.einsum("nij,j,nkj->nik", vec, lam, vec)
+    cov, _ = _neighbour_cov(xyz, valid, k, index)
+    return _gicp_cov(cov, eps)
 
 
 # ---------------------------------------------------------------------------
@@ -250,33 +261,80 @@ def _check_num(v, name: str, fn: str, lo: float, hi: float, lo_open=False):
 # ---------------------------------------------------------------------------
 
 
-def _gn_solve(residual_fn, args, dtype, inner_steps: int):
-    solver = optx.GaussNewton(rtol=1e-12 if dtype == jnp.float64 else 1e-6,
-                              atol=1e-14 if dtype == jnp.float64 else 1e-8,
-                              linear_solver=lx.Normal(lx.Cholesky()))
-    sol = optx.least_squares(residual_fn, solver, jnp.zeros(6, dtype), args=args, max_steps=inner_steps,
-                             throw=False)
-    return sol.value
+def _skew_rows(x):
+    """``[x]_x`` for each row of ``x`` (N, 3) -> (N, 3, 3)."""
+    z = jnp.zeros_like(x[:, 0])
+    return jnp.stack([jnp.stack([z, -x[:, 2], x[:, 1]], -1), jnp.stack([x[:, 2], z, -x[:, 0]], -1),
+                      jnp.stack([-x[:, 1], x[:, 0], z], -1)], -2)
 
 
-def _p2plane_res(xi, args):
-    p, q, n, sw = args
-    dr, dt = se3_exp(xi)
-    return sw * jnp.sum(n * (p @ dr.T + dt - q), -1)
+def _sym_inv3(m):
+    """Inverse of symmetric 3 x 3 matrices (N, 3, 3) by the adjugate; ``ok`` False where singular."""
+    a, b, c = m[:, 0, 0], m[:, 0, 1], m[:, 0, 2]
+    d, e, f = m[:, 1, 1], m[:, 1, 2], m[:, 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    scale = jnp.maximum(jnp.maximum(jnp.abs(a), jnp.abs(d)), jnp.abs(f))
+    ok = jnp.abs(det) > 1e3 * jnp.finfo(m.dtype).eps * scale**3
+    dsafe = jnp.where(ok, det, 1.0)
+    inv = jnp.stack([jnp.stack([c00, c01, c02], -1), jnp.stack([c01, c11, c12], -1),
+                     jnp.stack([c02, c12, c22], -1)], -2) / dsafe[:, None, None]
+    return jnp.where(ok[:, None, None], inv, 0.0), ok
 
 
-def _gicp_res(xi, args):
-    p, q, lt, sw = args
-    dr, dt = se3_exp(xi)
-    d = p @ dr.T + dt - q
-    return (sw[:, None] * jnp.einsum("nij,nj->ni", lt, d)).reshape(-1)
+def _solve6(m):
+    """Gauss-Newton increment from the stacked 7 x 7 moment ``[[H, g], [g^T, .]]``; and a condition flag.
+
+    ``H`` (6 x 6) is tested in the normalised frame (cloud centred and scaled to unit RMS radius,
+    so rotation and translation columns have comparable size): singular when its smallest
+    eigenvalue is below ``1e4 eps`` of its largest (unit-free).
+    """
+    h, g = m[:6, :6], m[:6, 6]
+    ev = jnp.linalg.eigvalsh(h)
+    ok = (ev[0] > 1e4 * jnp.finfo(m.dtype).eps * ev[-1]) & jnp.all(jnp.isfinite(ev))
+    hs = jnp.where(ok, h, jnp.eye(6, dtype=m.dtype))
+    cf = jax.scipy.linalg.cho_factor(hs)
+    return -jax.scipy.linalg.cho_solve(cf, g), ok
 
 
-def _normal_eq_ok(res_fn, args, dtype):
-    """Condition of J^T J (6 x 6) at xi = 0: False when a direction of the increment is not determined."""
-    j = jax.jacfwd(res_fn)(jnp.zeros(6, dtype), args)
-    ev = jnp.linalg.eigvalsh(j.T @ j)
-    return ev[0] > 1e4 * jnp.finfo(dtype).eps * ev[-1]
+def _p2plane_moment(x, q, n, w):
+    """One reduction: ``sum_i w_i a_i a_i^T`` with ``a_i = (x_i x n_i, n_i, n_i . (x_i - q_i))``."""
+    a = jnp.concatenate([jnp.cross(x, n), n, jnp.sum(n * (x - q), -1, keepdims=True)], -1)
+    return jnp.einsum("ni,nj->ij", a * w[:, None], a)
+
+
+def _gicp_moment(x, q, winv, w):
+    """One reduction: ``sum_i w_i A_i^T W_i A_i`` with ``A_i = [-[x_i]_x, I, x_i - q_i]`` (3 x 7)."""
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=x.dtype), x.shape[:1] + (3, 3))
+    a = jnp.concatenate([-_skew_rows(x), eye, (x - q)[:, :, None]], -1)
+    return jnp.einsum("nki,nkl,nlj->ij", a * w[:, None, None], winv, a)
+
+
+def _gn_steps(moment, x, q, aux, w, inner_steps: int = 1):
+    """Increment ``(dR, dt)`` (x -> dR x + dt) by ``inner_steps`` Gauss-Newton steps on fixed pairs.
+
+    ``moment(x, q, aux, w)`` gives the 7 x 7 moment at the current points; the condition flag is
+    that of the first step (at the pose the pairs were found for).
+    """
+    dr, dt = jnp.eye(3, dtype=x.dtype), jnp.zeros(3, x.dtype)
+    ok = jnp.bool_(True)
+    for i in range(inner_steps):
+        xi, oki = _solve6(moment(x @ dr.T + dt, q, aux, w))
+        ok = oki if i == 0 else ok
+        r1, t1 = se3_exp(xi)
+        dr, dt = r1 @ dr, r1 @ dt + t1
+    return dr, dt, ok
+
+
+def _p2plane_step(x, q, n, w, inner_steps: int = 1):
+    """Point-to-plane increment (see :func:`_gn_steps`)."""
+    return _gn_steps(_p2plane_moment, x, q, n, w, inner_steps)
+
+
+def _tolerance_floor(dtype):
+    """Smallest increment a run in ``dtype`` can resolve (normalised units): rounding noise of the solve."""
+    return 64 * float(jnp.finfo(dtype).eps)
 
 
 @functools.partial(jax.jit, static_argnames=("method", "max_iterations", "inner_steps", "normal_k", "cov_k",
@@ -291,98 +349,125 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     ns, nt = jnp.sum(sv), jnp.sum(tv)
     input_ok = finite & (ns >= min_pts) & (nt >= min_pts)
     input_reason = jnp.where(~finite | (ns == 0) | (nt == 0), INVALID, jnp.where(input_ok, OK, TOO_FEW))
-    src = jnp.where(sv[:, None] & finite, src, 0.0)
-    tgt = jnp.where(tv[:, None] & finite, tgt, 0.0)
+    sv = sv & finite
+    tv = tv & finite
+    src = jnp.where(sv[:, None], src, 0.0)
+    tgt = jnp.where(tv[:, None], tgt, 0.0)
     r0 = jnp.where(finite, r0, jnp.eye(3, dtype=dtype))
     t0 = jnp.where(finite, t0, 0.0)
+    # normalise: both clouds centred on the target centroid c and scaled by the target's RMS radius s,
+    # so every tolerance and singularity test below is unit-free (metres and millimetres alike)
     ntf = jnp.maximum(nt, 1).astype(dtype)
-    c = jnp.sum(jnp.where(tv[:, None], tgt, 0.0), 0) / ntf
+    c = jnp.sum(tgt, 0) / ntf
     scale = jnp.sqrt(jnp.sum(jnp.where(tv, jnp.sum((tgt - c) ** 2, -1), 0.0)) / ntf)
     scale = jnp.where(scale > 0, scale, 1.0)
-    # inlier distance default: 3 x the median nearest-neighbour spacing of the target
-    if inlier_dist is None:
-        _, d2s = knn(tgt, tgt, 2, ref_valid=tv)
-        sp = jnp.sqrt(jnp.where(tv, d2s[:, 1], jnp.nan))
-        inlier_dist = 3.0 * jnp.nanmedian(sp)
+    src = jnp.where(sv[:, None], (src - c) / scale, 0.0)
+    tgt = jnp.where(tv[:, None], (tgt - c) / scale, 0.0)
+    t0 = (r0 @ c + t0 - c) / scale  # target = R source + t in the normalised frame
+    max_corr = max_corr / scale
+    floor = _tolerance_floor(dtype)
+    rot_tol = jnp.maximum(rot_tol, floor)
+    trans_tol = jnp.maximum(trans_tol, floor)
+    # the one neighbour structure of the target, built once and reused by every query below: the
+    # sorted-cell grid (with a coarse level for the far queries of the first iterations), or for
+    # small problems the blocked brute force (same exact answers, cheaper to compile and to run)
+    brute = src.shape[0] * tgt.shape[0] <= _BRUTE_LIMIT
+    if brute:
+        refs = _brute_refs(tgt, tv)
+        bsz = _brute_batch(src.shape[0], tgt.shape[0])
+
+        def nearest(x, k):
+            d2, idx, _ = _batched(lambda q: _brute_queries(refs, q, k), (x,), bsz)
+            return idx, d2
+    else:
+        index = build_index(tgt, tv, k=10, coarse=True)
+
+        def nearest(x, k):
+            return query_knn(index, x, k)
+    # one k-NN pass over the target itself: spacing (column 1), normals or covariances
+    k_self = {"point_to_point": 2, "point_to_plane": 2 if has_normals else max(2, normal_k),
+              "gicp": max(2, cov_k)}[method]
+    if method != "point_to_point" or inlier_dist is None:
+        idx_t, d2_t = nearest(tgt, k_self)
+    if inlier_dist is None:  # 3 x the median nearest-neighbour spacing of the target
+        inlier_dist = 3.0 * jnp.nanmedian(jnp.sqrt(jnp.where(tv, d2_t[:, 1], jnp.nan)))
+    else:
+        inlier_dist = inlier_dist / scale
     if method == "point_to_plane":
-        tn = tnormals if has_normals else estimate_normals(tgt, tv, k=normal_k)
+        if has_normals:
+            tn = tnormals
+        else:
+            cov, cnt = _cov_from_idx(tgt, idx_t[:, :normal_k])
+            tn = jnp.where((cnt >= 3)[:, None], jnp.linalg.eigh(cov)[1][..., 0], 0.0)
         tn = jnp.where(jnp.isfinite(tn), tn, 0.0)
     if method == "gicp":
-        ct = local_covariances(tgt, tv, k=cov_k)
+        ct = _gicp_cov(_cov_from_idx(tgt, idx_t[:, :cov_k])[0])
         cs = local_covariances(src, sv, k=cov_k)
     n_src = src.shape[0]
 
     def correspond(r, t):
         p = src @ r.T + t
-        idx, d2 = knn(tgt, p, 1, ref_valid=tv)
+        idx, d2 = nearest(p, 1)
         j, d2 = idx[:, 0], d2[:, 0]
         ok = sv & (j >= 0) & (d2 <= max_corr**2)
-        # trimming: keep the ceil(overlap * n_ok) smallest distances
-        n_ok = jnp.sum(ok)
-        keep_n = jnp.ceil(overlap * n_ok).astype(jnp.int32)
-        ds = jnp.sort(jnp.where(ok, d2, jnp.inf))
-        thr = ds[jnp.clip(keep_n - 1, 0, n_src - 1)]
-        ok = ok & (d2 <= thr) & (keep_n > 0)
+
+        def trim(ok):  # keep the ceil(overlap * n_ok) smallest distances
+            keep_n = jnp.ceil(overlap * jnp.sum(ok)).astype(jnp.int32)
+            ds = jnp.sort(jnp.where(ok, d2, jnp.inf))
+            thr = ds[jnp.clip(keep_n - 1, 0, n_src - 1)]
+            return ok & (d2 <= thr) & (keep_n > 0)
+
+        ok = jax.lax.cond(overlap < 1, trim, lambda ok: ok, ok)
         return p, jnp.maximum(j, 0), d2, ok
 
-    def step(r, t):
-        p, j, _, ok = correspond(r, t)
+    def step(r, t, p, j, ok):
         w = ok.astype(dtype)
         q = tgt[j]
         n_ok = jnp.sum(ok)
         if method == "point_to_point":
-            dr, dt, _, s, _, _ = _weighted_kabsch(jnp.where(ok[:, None], p, 0.0), jnp.where(ok[:, None], q, 0.0),
-                                                  w, False)
-            geom_ok = s[1] > 1e3 * jnp.finfo(dtype).eps * s[0]
+            dr, dt, _, sing, _, _ = _weighted_kabsch(jnp.where(ok[:, None], p, 0.0),
+                                                     jnp.where(ok[:, None], q, 0.0), w, False)
+            geom_ok = sing[1] > 1e3 * jnp.finfo(dtype).eps * sing[0]
+        elif method == "point_to_plane":
+            dr, dt, geom_ok = _p2plane_step(p, q, tn[j], w, inner_steps)
         else:
-            pc, qc = p - c, q - c
-            if method == "point_to_plane":
-                args = (pc, qc, tn[j], w)
-                fn = _p2plane_res
-            else:
-                m = ct[j] + jnp.einsum("ij,njk,lk->nil", r, cs, r)
-                minv = jnp.linalg.inv(m)
-                minv = 0.5 * (minv + jnp.swapaxes(minv, -1, -2))
-                lt = jnp.swapaxes(jnp.linalg.cholesky(minv), -1, -2)
-                lt = jnp.where(ok[:, None, None] & jnp.all(jnp.isfinite(lt), (-1, -2))[:, None, None], lt, 0.0)
-                args = (pc, qc, lt, w)
-                fn = _gicp_res
-            geom_ok = _normal_eq_ok(fn, args, dtype)
-            xi = _gn_solve(fn, args, dtype, inner_steps)
-            dr, dtc = se3_exp(xi)
-            dt = dtc + c - dr @ c  # increment about c, expressed about the origin
+            winv, inv_ok = _sym_inv3(ct[j] + jnp.einsum("ij,njk,lk->nil", r, cs, r))
+            dr, dt, geom_ok = _gn_steps(_gicp_moment, p, q, winv, w * inv_ok, inner_steps)
         r_new = dr @ r
         t_new = dr @ t + dt
         dang = jnp.radians(rotation_angle_deg(dr))
-        dtr = jnp.linalg.norm(r_new @ c + t_new - (r @ c + t)) / scale
+        dtr = jnp.linalg.norm(t_new - t)  # the moved target centroid (0 here), relative to the RMS radius
         small = (dang <= rot_tol) & (dtr <= trans_tol)
         bad = jnp.where(n_ok < min_pts, TOO_FEW, jnp.where(~geom_ok | ~jnp.all(jnp.isfinite(r_new)), DEGENERATE, OK))
         return r_new, t_new, small, bad, n_ok
 
+    # one nearest-neighbour pass per loop turn: the turn after the last step only evaluates the
+    # returned pose (rmse, fitness), so the search is compiled once
     def cond(st):
-        it, _, _, done, bad, _ = st
-        return (it < max_iterations) & ~done & (bad == OK)
+        return ~st[-1]
 
     def body(st):
-        it, r, t, _, _, _ = st
-        r2, t2, small, bad, n_ok = step(r, t)
-        keep = bad == OK
-        return (it + 1, jnp.where(keep, r2, r), jnp.where(keep, t2, t), small, bad.astype(jnp.int32),
-                n_ok.astype(jnp.int32))
+        it, r, t, done, bad, n_ok, _, _, _ = st
+        p, j, d2, ok = correspond(r, t)
+        stop = done | (bad != OK) | (it >= max_iterations)
+        r2, t2, small, bad2, n2 = step(r, t, p, j, ok)
+        upd = ~stop & (bad2 == OK)
+        return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
+                jnp.where(stop, done, small), jnp.where(stop, bad, bad2.astype(jnp.int32)),
+                jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2, ok, stop)
 
-    init = (jnp.int32(0), r0, t0, ~input_ok, input_reason.astype(jnp.int32), jnp.int32(0))
-    it, r, t, done, bad, n_ok = jax.lax.while_loop(cond, body, init)
-    # final evaluation at the returned pose
-    p, j, d2, ok = correspond(r, t)
+    z = jnp.zeros(n_src, dtype)
+    init = (jnp.int32(0), r0, t0, ~input_ok, input_reason.astype(jnp.int32), jnp.int32(0), z, sv, jnp.bool_(False))
+    it, r, t, done, bad, n_ok, d2a, ok, _ = jax.lax.while_loop(cond, body, init)
     n_fin = jnp.sum(ok)
-    rmse = jnp.sqrt(jnp.sum(jnp.where(ok, d2, 0.0)) / jnp.maximum(n_fin, 1))
-    _, d2a = knn(tgt, p, 1, ref_valid=tv)
-    inl = jnp.sum(sv & (d2a[:, 0] <= inlier_dist**2)) / jnp.maximum(ns, 1)
+    rmse = jnp.sqrt(jnp.sum(jnp.where(ok, d2a, 0.0)) / jnp.maximum(n_fin, 1)) * scale
+    inl = jnp.sum(sv & (d2a <= inlier_dist**2)) / jnp.maximum(ns, 1)
     reason = jnp.where(bad != OK, bad, jnp.where(~done, MAX_ITER, jnp.where(inl < min_inlier, LOW_FITNESS, OK)))
     failed = (reason == INVALID) | (reason == TOO_FEW) | (reason == DEGENERATE)
     nan = jnp.asarray(jnp.nan, dtype)
+    t_out = scale * t + c - r @ c
     return ICPResult(
-        R=jnp.where(failed, nan, r), t=jnp.where(failed, nan, t), rmse=jnp.where(failed, nan, rmse),
+        R=jnp.where(failed, nan, r), t=jnp.where(failed, nan, t_out), rmse=jnp.where(failed, nan, rmse),
         iterations=it, converged=reason == OK, inlier_fraction=jnp.where(reason == INVALID, 0.0, inl).astype(dtype),
         n_correspondences=jnp.where(bad != OK, n_ok, n_fin).astype(jnp.int32), reason=reason.astype(jnp.int32),
     )
@@ -426,8 +511,9 @@ def icp(
             points, full overlap) every correct alignment had fitness 1.0 and every wrong local
             minimum at most 0.83, from any initial rotation.
         max_iterations: outer iteration cap (static); hitting it is reported (reason 1).
-        rot_tol: convergence: rotation increment in radians.
-        trans_tol: convergence: increment of the moved centroid, relative to the target's RMS radius.
+        rot_tol: convergence: rotation increment in radians (raised to ``64 eps`` of the dtype).
+        trans_tol: convergence: increment of the moved centroid, relative to the target's RMS radius
+            (raised to ``64 eps`` of the dtype).
         inner_steps: Gauss-Newton steps per outer iteration (point-to-plane, GICP; static).
         normal_k: neighbours for target normals (static).
         cov_k: neighbours for GICP covariances (static).

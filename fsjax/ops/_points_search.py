@@ -73,7 +73,7 @@ References:
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -84,7 +84,8 @@ from ..registry import register
 from ..types import Feature, Mesh, Points, is_concrete
 from ._common import check_static_int
 
-__all__ = ["knn", "radius_search", "sample_surface", "point_spacing"]
+__all__ = ["knn", "radius_search", "sample_surface", "point_spacing", "GridIndex", "build_index", "query_knn",
+           "query_radius"]
 
 _GMAX = 1024  # cells per grid side: (z * Gy + y) * Gx + x < 2**30 fits int32
 _SENTINEL = np.iinfo(np.int32).max
@@ -136,6 +137,8 @@ def _check_method(fn: str, method: str) -> str:
 def _sqdist(q, p):
     """Squared distances ``(..., 3) x (..., 3)``, summed x, y, z in this order."""
     d = p - q
+    if d.shape[-1] != 3:  # any other dimension (descriptors): plain sum of squares
+        return jnp.sum(d * d, axis=-1)
     return (d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) + d[..., 2] * d[..., 2]
 
 
@@ -230,7 +233,8 @@ def _pad_refs(ref, valid, block):
     n = ref.shape[0]
     nb = max(1, -(-n // block))
     pad = nb * block - n
-    refp = jnp.concatenate([ref, jnp.zeros((pad, 3), ref.dtype)], axis=0).reshape(nb, block, 3)
+    d = ref.shape[1]
+    refp = jnp.concatenate([ref, jnp.zeros((pad, d), ref.dtype)], axis=0).reshape(nb, block, d)
     valp = jnp.concatenate([valid, jnp.zeros(pad, bool)]).reshape(nb, block)
     idp = jnp.arange(nb * block, dtype=jnp.int32).reshape(nb, block)
     return refp, valp, idp
@@ -248,7 +252,10 @@ def _brute_queries(refs, q, kk, r2=None):
     def step(carry, blk):
         bd, bi, cnt = carry
         r, v, ids = blk
-        d2 = _sqdist(q[:, None, :], r[None, :, :])
+        if q.shape[-1] > 4:  # descriptors: |q|^2 - 2 q.p + |p|^2 (a matrix product), clamped at 0
+            d2 = jnp.maximum(jnp.sum(q * q, -1)[:, None] - 2.0 * q @ r.T + jnp.sum(r * r, -1)[None, :], 0.0)
+        else:
+            d2 = _sqdist(q[:, None, :], r[None, :, :])
         keep = v[None, :] if r2 is None else v[None, :] & (d2 <= r2)
         d2 = jnp.where(keep, d2, inf)
         sel = _select if r2 is None else _select_finite
@@ -300,28 +307,27 @@ def _in_cell_order(g, qry, fn, B):
     return tuple(o[inv] for o in outs)
 
 
-class _Grid:
-    """Sorted-cell grid of the valid reference points (a plain container, traced fields)."""
+class GridIndex(NamedTuple):
+    """Sorted-cell grid of the valid points of one cloud: build once, query many times.
 
-    def __init__(self, ref, valid, h):
-        dtype = ref.dtype
-        big = jnp.asarray(jnp.finfo(dtype).max, dtype)
-        lo = jnp.min(jnp.where(valid[:, None], ref, big), axis=0)
-        hi = jnp.max(jnp.where(valid[:, None], ref, -big), axis=0)
-        any_valid = jnp.any(valid)
-        lo = jnp.where(any_valid, lo, 0)
-        hi = jnp.where(any_valid, hi, 0)
-        ext = jnp.max(hi - lo)
-        h = jnp.maximum(jnp.asarray(h, dtype), ext / (_GMAX - 1) * (1 + 1e-3))
-        h = jnp.where(h > 0, h, jnp.asarray(1.0, dtype))
-        dims = jnp.clip(jnp.floor((hi - lo) / h).astype(jnp.int32) + 1, 1, _GMAX)
-        key = jnp.where(valid, _cell_key(ref, lo, h, dims), _SENTINEL)
-        order = jnp.argsort(key).astype(jnp.int32)
-        self.lo, self.h, self.dims = lo, h, dims
-        self.key_of = lambda x: _cell_key(x, lo, h, dims)
-        self.skey = key[order]
-        self.spts = ref[order]
-        self.order = order
+    A plain pytree (every field an array), so it can be passed through ``jit``, carried by a
+    ``while_loop`` or ``vmap``-ped over clouds of equal capacity. Build it with
+    :func:`build_index`, query it with :func:`query_knn` / :func:`query_radius`; the cell
+    side ``h`` only affects speed, never the (exact) answers of :func:`query_knn`.
+    """
+
+    ref: Any  # (N, D) the points (D = 3 for the grid; the brute-force fallback reads them)
+    valid: Any  # (N,) bool
+    lo: Any  # (3,) grid origin
+    h: Any  # () cell side
+    dims: Any  # (3,) int32 cells per side
+    skey: Any  # (N,) sorted cell keys (invalid points last, key = int32 max)
+    spts: Any  # (N, 3) points in key order
+    order: Any  # (N,) int32 original index of each sorted point
+    coarse: Any = None  # optional second grid of the same points, cells 4x larger (far queries)
+
+    def key_of(self, x):
+        return _cell_key(x, self.lo, self.h, self.dims)
 
     def runs(self, q, ring):
         """Sorted runs of the ``(2 ring + 1)^3`` block around each query ``q`` (M, 3).
@@ -354,6 +360,24 @@ class _Grid:
         start = start.reshape(-1, nr)
         length = jnp.where(ok, end.reshape(-1, nr) - start, 0)
         return start, length, bound
+
+
+def _grid(ref, valid, h) -> GridIndex:
+    """Bin the valid points of ``ref`` into cubic cells of side about ``h`` (see the module doc)."""
+    dtype = ref.dtype
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    lo = jnp.min(jnp.where(valid[:, None], ref, big), axis=0)
+    hi = jnp.max(jnp.where(valid[:, None], ref, -big), axis=0)
+    any_valid = jnp.any(valid)
+    lo = jnp.where(any_valid, lo, 0)
+    hi = jnp.where(any_valid, hi, 0)
+    ext = jnp.max(hi - lo)
+    h = jnp.maximum(jnp.asarray(h, dtype), ext / (_GMAX - 1) * (1 + 1e-3))
+    h = jnp.where(h > 0, h, jnp.asarray(1.0, dtype))
+    dims = jnp.clip(jnp.floor((hi - lo) / h).astype(jnp.int32) + 1, 1, _GMAX)
+    key = jnp.where(valid, _cell_key(ref, lo, h, dims), _SENTINEL)
+    order = jnp.argsort(key).astype(jnp.int32)
+    return GridIndex(ref, valid, lo, h, dims, key[order], ref[order], order)
 
 
 def _scan_cells(spts, q, start, length, kk, S, r2=None):
@@ -417,32 +441,39 @@ _B1 = 128  # queries per batch in the first grid pass
 _B2 = 32  # queries per batch in the fallback passes
 
 
-def _grid_knn(ref, valid, qry, k):
-    h = _knn_cell_size(ref, valid, k)
-    g = _Grid(ref, valid, h)
+def _query_grid_knn(g: GridIndex, qry, k):
     eps = jnp.finfo(qry.dtype).eps
     S = _slots(k)
 
-    def ring_pass(q, ring, S):
-        start, length, bound = g.runs(q, ring)
-        d2, pos, _ = _scan_cells(g.spts, q, start, length, k, S)
+    def ring_pass(grid, q, ring, S):
+        start, length, bound = grid.runs(q, ring)
+        d2, pos, _ = _scan_cells(grid.spts, q, start, length, k, S)
         b = jnp.maximum(bound, 0.0)
         # certificate: the k-th distance is strictly inside the searched block
         cert = d2[:, -1] < (b * b) * (1 - 64 * eps)
-        return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cert
+        return d2, jnp.where(jnp.isfinite(d2), grid.order[pos], -1), cert
 
-    d2, idx, cert = _in_cell_order(g, qry, lambda q: ring_pass(q, 1, S), min(_B1, qry.shape[0]))
-    # not certified: a 5 x 5 x 5 block, then a brute-force scan of all points
-    d2, idx, cert = _redo(~cert, _B2, lambda sel: ring_pass(qry[sel], 2, 2 * S), (d2, idx, cert))
-    refs = _brute_refs(ref, valid)
+    d2, idx, cert = _in_cell_order(g, qry, lambda q: ring_pass(g, q, 1, S), min(_B1, qry.shape[0]))
+    if g.coarse is None:  # not certified: a 5 x 5 x 5 block
+        d2, idx, cert = _redo(~cert, _B2, lambda sel: ring_pass(g, qry[sel], 2, 2 * S), (d2, idx, cert))
+    else:  # not certified: the 3 x 3 x 3 and 5 x 5 x 5 blocks of the coarse grid (cells 4x larger)
+        gc = g.coarse
+        d2, idx, cert = _redo(~cert, _B1 // 2, lambda sel: ring_pass(gc, qry[sel], 1, 4 * S), (d2, idx, cert))
+        d2, idx, cert = _redo(~cert, _B2, lambda sel: ring_pass(gc, qry[sel], 2, 8 * S), (d2, idx, cert))
+        if gc.coarse is not None:  # a third level, cells 16x the finest
+            gcc = gc.coarse
+            d2, idx, cert = _redo(~cert, _B2, lambda sel: ring_pass(gcc, qry[sel], 1, 8 * S), (d2, idx, cert))
+    # still not certified (far from the cloud, or fewer than k points nearby): a brute-force scan
+    refs = _brute_refs(g.ref, g.valid)
     d2, idx = _redo(~cert, _B2, lambda sel: _brute_queries(refs, qry[sel], k)[:2], (d2, idx))
     return idx, d2
 
 
-def _grid_radius(ref, valid, qry, radius, capacity):
-    r = jnp.asarray(radius, qry.dtype)
-    # a cell a little larger than r: the 27-cell block then contains the closed ball despite rounding
-    g = _Grid(ref, valid, r * (1 + 16 * jnp.finfo(qry.dtype).eps))
+def _grid_knn(ref, valid, qry, k):
+    return _query_grid_knn(_grid(ref, valid, _knn_cell_size(ref, valid, k)), qry, k)
+
+
+def _query_grid_radius(g: GridIndex, qry, r, capacity):
     S = 64  # candidates per step: the count in 27 cells of side r does not scale with the capacity
 
     def one_pass(q):
@@ -452,6 +483,87 @@ def _grid_radius(ref, valid, qry, radius, capacity):
 
     d2, idx, cnt = _in_cell_order(g, qry, one_pass, min(_B1, qry.shape[0]))
     return idx, d2, cnt
+
+
+def _grid_radius(ref, valid, qry, radius, capacity):
+    r = jnp.asarray(radius, qry.dtype)
+    # a cell a little larger than r: the 27-cell block then contains the closed ball despite rounding
+    return _query_grid_radius(_grid(ref, valid, r * (1 + 16 * jnp.finfo(qry.dtype).eps)), qry, r, capacity)
+
+
+# ---------------------------------------------------------------------------
+# The reusable index (build once per cloud, query many times)
+# ---------------------------------------------------------------------------
+
+
+def build_index(ref_xyz: Any, ref_valid: Any = None, *, k: int = 8, cell: Any = None,
+                coarse: bool = False) -> GridIndex:
+    """Build the sorted-cell grid of a cloud once, for repeated exact queries.
+
+    Jittable and ``vmap``-able (the index is a pytree of arrays). ``k`` (static) sizes the
+    cells for kNN queries with about ``k`` neighbours (1.5 x the median k-th neighbour
+    distance of 16 strided points); ``cell`` (a length, may be traced) overrides it, e.g.
+    the radius of later radius searches. The cell side affects speed only: :func:`query_knn`
+    is exact for any ``k`` on any index, :func:`query_radius` is exact for radii up to
+    the cell side ``index.h`` (larger radii are refused eagerly and flagged ``truncated``
+    under ``jit``).
+
+    Worst cases: the grid has at most 1024 cells per side (a long thin cloud gets cells
+    larger than asked: slower, still exact); a dense cell costs more scan steps; a query
+    far from the cloud (farther than two cells) falls back to a blocked brute-force scan
+    (O(N) for that query, never an (N, M) matrix). ``coarse=True`` adds two grids of
+    the same points with cells 4x and 16x larger, searched (3 x 3 x 3 and 5 x 5 x 5 blocks
+    of the first, 3 x 3 x 3 of the second) before that fallback: for queries that are
+    typically several cells away from the cloud (the first iterations of ICP); on the bunny
+    at 20,000 points moved by 10 deg this cut the points sent to the brute-force scan from
+    about 80 % to under 1 %.
+    """
+    ref = jnp.asarray(ref_xyz)
+    if ref.ndim != 2 or ref.shape[-1] != 3:
+        raise ValueError(f"build_index: argument 'ref_xyz' must have shape (N, 3), got {tuple(ref.shape)}")
+    valid = jnp.ones(ref.shape[0], bool) if ref_valid is None else jnp.asarray(ref_valid, bool)
+    if cell is None:
+        k = int(k)
+        h = _knn_cell_size(ref, valid, k) if ref.shape[0] > 0 else jnp.asarray(1.0, ref.dtype)
+    else:
+        h = jnp.asarray(cell, ref.dtype) * (1 + 16 * jnp.finfo(ref.dtype).eps)
+    g = _grid(ref, valid, h)
+    if not coarse:
+        return g
+    g2 = _grid(ref, valid, 4 * g.h)
+    return g._replace(coarse=g2._replace(coarse=_grid(ref, valid, 4 * g2.h)))
+
+
+def query_knn(index: GridIndex, query_xyz: Any, k: int):
+    """Exact k nearest indexed points of each query (as :func:`knn`, on a prebuilt index).
+
+    ``k`` static, ``1 <= k <= 64``. Returns ``(idx (M, k) int32, dist2 (M, k))`` with -1 /
+    ``inf`` for missing neighbours; identical to :func:`knn` on the same points.
+    """
+    qry = jnp.asarray(query_xyz, index.ref.dtype)
+    k = int(k)
+    if not 1 <= k <= 64:
+        raise ValueError(f"query_knn: argument 'k' must be in [1, 64], got {k}")
+    if qry.shape[0] == 0 or index.ref.shape[0] == 0:
+        return jnp.full((qry.shape[0], k), -1, jnp.int32), jnp.full((qry.shape[0], k), jnp.inf, qry.dtype)
+    return _query_grid_knn(index, qry, k)
+
+
+def query_radius(index: GridIndex, query_xyz: Any, radius: Any, capacity: int):
+    """Indexed points within ``radius`` of each query (as :func:`radius_search`, on a prebuilt index).
+
+    Exact when ``radius <= index.h`` (build the index with ``cell=radius``). Returns
+    ``(idx, dist2, count, truncated)``; ``truncated`` is also set for every query when the
+    radius exceeds the cell side (the answer would be incomplete).
+    """
+    qry = jnp.asarray(query_xyz, index.ref.dtype)
+    capacity = int(capacity)
+    r = jnp.asarray(radius, qry.dtype)
+    if is_concrete(r) and is_concrete(index.h) and float(r) > float(index.h):
+        raise ValueError(f"query_radius: argument 'radius' ({float(r)}) exceeds the index cell side "
+                         f"({float(index.h)}); build the index with cell=radius")
+    idx, d2, cnt = _query_grid_radius(index, qry, r, capacity)
+    return idx, d2, cnt, (cnt > capacity) | (r > index.h)
 
 
 # ---------------------------------------------------------------------------
