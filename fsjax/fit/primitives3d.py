@@ -43,6 +43,8 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ._smalllinalg import SmallQR, eigh_small, solve_small, solve_spd_eig
+
 __all__ = [
     "Fit3D", "ModelSelection", "MODEL_PARAMS", "fit_plane", "fit_line", "fit_sphere", "fit_circle3d",
     "fit_cylinder", "fit_quadric", "select_model", "point_plane_distance", "point_line_distance",
@@ -116,7 +118,7 @@ def _pca(x, v):
     n = jnp.maximum(jnp.sum(w), 1.0)
     c = jnp.sum(x * w[:, None], 0) / n
     d = (x - c) * w[:, None]
-    ev, evec = jnp.linalg.eigh(d.T @ d / n)
+    ev, evec = eigh_small(d.T @ d / n)
     return c, jnp.maximum(ev, 0.0), evec
 
 
@@ -137,7 +139,7 @@ def _tols(dt):
 
 def _lm(fn, y0, args, max_steps):
     rtol, atol = _tols(y0.dtype)
-    sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol), y0, args=args,
+    sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=SmallQR()), y0, args=args,
                              max_steps=max_steps, throw=False)
     return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
@@ -208,9 +210,9 @@ def _sphere_alg(x, v):
     A = jnp.concatenate([2 * y, w[:, None]], 1)
     b = jnp.sum(y * y, 1)
     ata = A.T @ A
-    ev = jnp.linalg.eigvalsh(ata)
+    ev, evec = eigh_small(ata)
     ok = ev[0] > 1e-10 * ev[3]
-    sol = jnp.linalg.solve(jnp.where(ok, ata, jnp.eye(4, dtype=x.dtype)), A.T @ b)
+    sol = solve_spd_eig(jnp.where(ok, ev, 1.0), evec, A.T @ b)
     r2 = sol[3] + jnp.sum(sol[:3] ** 2)
     ok = ok & (r2 > 0)
     return jnp.concatenate([m + s * sol[:3], (s * jnp.sqrt(jnp.where(r2 > 0, r2, 1.0)))[None]]), ok
@@ -278,7 +280,7 @@ def fit_circle3d(xyz, valid=None, *, max_steps: int = 100) -> Fit3D:
     b = jnp.sum(u * u, 1) * w
     ata = A.T @ A
     ok = (jnp.sum(v) >= 3) & (ev[1] > 1e-12 * ev[2])
-    s = jnp.linalg.solve(jnp.where(ok, ata, jnp.eye(3, dtype=x.dtype)), A.T @ b)
+    s = solve_small(jnp.where(ok, ata, jnp.eye(3, dtype=x.dtype)), A.T @ b)
     r2 = s[2] + s[0] ** 2 + s[1] ** 2
     y0 = jnp.stack([s[0], s[1], jnp.sqrt(jnp.where(r2 > 0, r2, 1.0))])
     y, conv, steps = _lm(_circle2d_res, y0, (u, w), max_steps)
@@ -313,8 +315,9 @@ def _cyl_from_axis(x, v, a, max_steps):
     A = jnp.concatenate([2 * uu, w[:, None]], 1)
     b = jnp.sum(uu * uu, 1)
     ata = A.T @ A
-    good = jnp.linalg.eigvalsh(ata)[0] > 1e-12 * jnp.trace(ata)
-    s = jnp.linalg.solve(jnp.where(good, ata, jnp.eye(3, dtype=x.dtype)), A.T @ b)
+    ev, evec = eigh_small(ata)
+    good = ev[0] > 1e-12 * jnp.trace(ata)
+    s = solve_spd_eig(jnp.where(good, ev, 1.0), evec, A.T @ b)
     r2 = s[2] + s[0] ** 2 + s[1] ** 2
     c0 = (m[0] + s[0]) * e1 + (m[1] + s[1]) * e2
     r0 = jnp.sqrt(jnp.where(r2 > 0, r2, 1.0))
@@ -327,6 +330,16 @@ def _cyl_from_axis(x, v, a, max_steps):
     rss = jnp.sum(jnp.where(v, res * res, 0.0))
     ok = good & conv & (r2 > 0) & jnp.isfinite(rss)
     return jnp.concatenate([c, ax, jnp.abs(y[4])[None]]), res, jnp.where(ok, rss, jnp.inf), ok, steps
+
+
+def _local_normals(x, v, idx):
+    """Normal of each point's neighbourhood ``idx`` ``(N, k)``: smallest-eigenvalue eigenvector of its covariance."""
+    m = (idx >= 0) & v[jnp.maximum(idx, 0)]
+    nb = x[jnp.maximum(idx, 0)]
+    cs = jnp.maximum(jnp.sum(m, axis=1), 1).astype(x.dtype)[:, None]
+    mu = jnp.sum(jnp.where(m[..., None], nb, 0.0), axis=1) / cs
+    d = jnp.where(m[..., None], nb - mu[:, None, :], 0.0)
+    return eigh_small(jnp.einsum("nki,nkj->nij", d, d) / cs[..., None])[1][..., 0]
 
 
 @functools.partial(jax.jit, static_argnames=("max_steps",))
@@ -349,15 +362,14 @@ def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
       >>> round(float(f["r"]), 6), round(float(f["az"]), 6)
       (0.5, 1.0)
     """
-    from ..ops._points import knn, pca_frames
+    from ..ops._points import knn
 
     x, v = _prep(xyz, valid)
     c, _, evec = _pca(x, v)
     xc = x - c
     idx, _ = knn(xc, xc, min(12, x.shape[0]), ref_valid=v)
-    _, nev, _, _ = pca_frames(xc, v, idx)
-    nrm = jnp.where(v[:, None], nev[..., 0], 0.0)
-    a_n = jnp.linalg.eigh(nrm.T @ nrm)[1][:, 0]
+    nrm = jnp.where(v[:, None], _local_normals(xc, v, idx), 0.0)
+    a_n = eigh_small(nrm.T @ nrm)[1][:, 0]
     axes = jnp.stack([evec[:, 0], evec[:, 1], evec[:, 2], a_n])
     p, res, rss, ok, steps = jax.vmap(lambda a: _cyl_from_axis(xc, v, a, max_steps))(axes)
     best = jnp.argmin(rss)
@@ -407,9 +419,9 @@ def fit_quadric(xyz, valid=None) -> Fit3D:
     wt = v.astype(x.dtype)
     A = jnp.stack([U * U, U * V, V * V, U, V, jnp.ones_like(U)], 1) * wt[:, None]
     ata = A.T @ A
-    eg = jnp.linalg.eigvalsh(ata)
+    eg, egv = eigh_small(ata)
     ok = (jnp.sum(v) >= 6) & (eg[0] > 1e-12 * eg[-1]) & (ev[1] > 1e-12 * ev[2])
-    q = jnp.linalg.solve(jnp.where(ok, ata, jnp.eye(6, dtype=x.dtype)), A.T @ (w * wt))
+    q = solve_spd_eig(jnp.where(ok, eg, 1.0), egv, A.T @ (w * wt))
     h = jnp.stack([U * U, U * V, V * V, U, V, jnp.ones_like(U)], 1) @ q
     hu = (2 * q[0] * U + q[1] * V + q[3]) / sc
     hv = (q[1] * U + 2 * q[2] * V + q[4]) / sc
@@ -622,5 +634,5 @@ def intersect_planes(p1, p2, *, min_angle_deg: float = 1e-6):
     u = _canon(cr / jnp.where(ok, cn, 1.0))
     # point on both planes closest to the origin: solve [n1; n2; u] x = [d1, d2, 0]
     M = jnp.stack([n1, n2, u])
-    x = jnp.linalg.solve(jnp.where(ok, M, jnp.eye(3, dtype=M.dtype)), jnp.stack([d1, d2, jnp.zeros_like(d1)]))
+    x = solve_small(jnp.where(ok, M, jnp.eye(3, dtype=M.dtype)), jnp.stack([d1, d2, jnp.zeros_like(d1)]))
     return jnp.where(ok, jnp.concatenate([x, u]), jnp.nan), ok
