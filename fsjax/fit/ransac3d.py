@@ -29,7 +29,9 @@ fewer valid points than a sample needs, when a valid point has a non-finite
 coordinate, when every sample was degenerate (collinear points for a plane,
 coplanar for a sphere, parallel normals for a cylinder), when the refitted
 inlier set is degenerate (a plane's inliers must spread more than
-``threshold`` across two directions, a line's along one), when the consensus
+``threshold`` across two directions, a line's along one), when a sphere's or
+cylinder's inliers all lie within ``threshold`` of one plane (the data do not
+resolve any curvature: a huge radius would fit a flat patch), when the consensus
 is below ``min_inlier_fraction`` of the valid points (the usual symptom of
 too many outliers for the hypothesis count), or when the nonlinear refit did
 not converge. ``reason`` gives the code (``REASONS[reason]``,
@@ -67,6 +69,7 @@ REASONS = (
     "degenerate: no non-degenerate sample, or degenerate inlier set",
     "consensus below min_inlier_fraction",
     "least-squares refit did not converge",
+    "unsupported model: the inliers also lie within threshold of a plane (no curvature resolved)",
 )
 
 MODELS = {
@@ -363,9 +366,18 @@ def _core(key, xyz, valid, normals, thr, min_frac, *, model, n_hyp, max_steps, r
     r = dist(q, x)
     rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0.0)) / jnp.maximum(n_in, 1).astype(dt))
     low = frac < min_frac
+    if model in ("sphere", "cylinder"):
+        # a curved model the data does not support: when the inliers are all within the
+        # threshold of their own total-least-squares plane, a sphere or cylinder of any large
+        # radius explains them (a plane gave radius 143 for a 2-unit patch), so refuse it
+        c0, _, ev0 = _weighted_pca(x, inl.astype(dt))
+        dev = jnp.abs((x - c0) @ ev0[:, 0])
+        flat = (n_in >= 3) & (jnp.max(jnp.where(inl, dev, 0.0)) <= thr)
+    else:
+        flat = jnp.asarray(False)
     reason = jnp.select(
-        [~enough, bad_coord, ~any_ok, low, ~ok_refit],
-        [1, 2, 3, 4, 5], 0).astype(jnp.int32)
+        [~enough, bad_coord, ~any_ok, low, ~ok_refit, flat],
+        [1, 2, 3, 4, 5, 6], 0).astype(jnp.int32)
     # a degenerate refitted set (plane/line) is a degeneracy, not a solver failure
     if model in ("plane", "line"):
         reason = jnp.where((reason == 5), 3, reason)

@@ -114,6 +114,22 @@ def test_degenerate_input_fails_closed():
         ransac(KEY, jnp.asarray(x), "plane", n_hypotheses=0)
 
 
+
+def test_curved_model_on_a_flat_patch_refused():
+    """Issue 20 sweep: a cylinder RANSAC on a noisy flat patch used to be accepted (radius 143 for a
+    2-unit patch, every point an inlier). A curved model whose inliers also fit a plane within the
+    threshold is not supported by the data: reason 6, NaN params. (In float64 the refit happens
+    not to converge there, reason 5; float32, the default dtype, accepted it.)"""
+    rng = np.random.default_rng(0)
+    g = rng.uniform(-1, 1, (300, 2))
+    flat = np.c_[g, 0.3 + 0.002 * rng.normal(size=300)]
+    with jax.enable_x64(False):  # the user's default dtype, float32 throughout
+        r = ransac(jax.random.PRNGKey(0), jnp.asarray(flat, jnp.float32), "cylinder", threshold=0.01)
+        r = jax.tree_util.tree_map(np.asarray, r)
+    assert not bool(r.converged) and bool(np.all(np.isnan(r.params)))
+    assert r.reason_text() == REASONS[6] and "plane" in REASONS[6]
+
+
 RATIOS = (0.0, 0.3, 0.6, 0.7, 0.8, 0.9)
 
 
