@@ -38,11 +38,20 @@ Conventions (stated once for the whole family):
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ..registry import LinKnob, LogKnob, register
-from ..types import Image
-from ._common import check_choice, check_mode, check_positive, check_range, correlate1d, support_exceeded
+from ..types import Image, is_concrete
+from ._common import (
+    check_choice,
+    check_kernel_extent,
+    check_mode,
+    check_positive,
+    check_range,
+    correlate1d,
+    support_exceeded,
+)
 from ._filters import _gaussian_radius, gaussian_weights
 
 __all__ = [
@@ -124,10 +133,12 @@ def _poison_wide(out, sigma, truncate, radius):
     return out if bad is None else jnp.where(bad, jnp.nan, out)
 
 
-def _check_sigma(op, sigma, truncate, mode):
+def _check_sigma(op, sigma, truncate, mode, shape=None):
     check_positive(op, "sigma", sigma)
     check_positive(op, "truncate", truncate)
     check_mode(op, mode)
+    if shape is not None and is_concrete(sigma):
+        check_kernel_extent(op, "sigma", int(truncate * float(np.max(np.asarray(sigma))) + 0.5), shape)
 
 
 def _structure_tensor(x, sigma, truncate, max_sigma, mode):
@@ -395,7 +406,7 @@ def log(img: Image, /, *, sigma: float = 2.0, truncate: float = 4.0, mode: str =
       >>> round(float(fsjax.ops.log(fsjax.Image(jnp.ones((41, 41))), sigma=2.0).data[20, 20]), 6)
       -0.000173
     """
-    _check_sigma("log", sigma, truncate, mode)
+    _check_sigma("log", sigma, truncate, mode, img.data.shape)
     x = img.data
     out = (_gauss_filter(x, sigma, (2, 0), truncate, max_sigma, mode)
            + _gauss_filter(x, sigma, (0, 2), truncate, max_sigma, mode))
@@ -443,9 +454,11 @@ def dog(img: Image, /, *, sigma: float = 1.0, ratio: float = 1.6, truncate: floa
       >>> abs(float(out.data[20, 20]) - (-0.006)) < 1e-5
       True
     """
-    _check_sigma("dog", sigma, truncate, mode)
+    _check_sigma("dog", sigma, truncate, mode, img.data.shape)
     check_range("dog", "ratio", ratio, 1.0, None, lo_open=True)
     x = img.data
+    if is_concrete(sigma) and is_concrete(ratio):
+        check_kernel_extent("dog", "ratio", int(truncate * float(sigma) * float(ratio) + 0.5), img.data.shape)
     s2 = jnp.asarray(sigma) * ratio
     out = (_gauss_filter(x, sigma, (0, 0), truncate, max_sigma, mode)
            - _gauss_filter(x, s2, (0, 0), truncate, max_sigma, mode))
@@ -498,7 +511,7 @@ def gauss_deriv(img: Image, /, *, sigma: float = 1.0, component: str = "x", trun
       >>> round(float(fsjax.ops.gauss_deriv(img, sigma=1.0, component="amp").data[10, 10]), 5)
       0.05
     """
-    _check_sigma("gauss_deriv", sigma, truncate, mode)
+    _check_sigma("gauss_deriv", sigma, truncate, mode, img.data.shape)
     check_choice("gauss_deriv", "component", component, _COMPONENTS)
     x = img.data
     if component == "amp":
@@ -549,7 +562,7 @@ def harris(img: Image, /, *, sigma: float = 1.0, k: float = 0.05, truncate: floa
       >>> abs(float(out.data[12, 12]) - (-0.05 * 0.0025**2)) < 1e-15
       True
     """
-    _check_sigma("harris", sigma, truncate, mode)
+    _check_sigma("harris", sigma, truncate, mode, img.data.shape)
     check_range("harris", "k", k, 0.0, None)
     jrr, jrc, jcc = _structure_tensor(img.data, sigma, truncate, max_sigma, mode)
     tr = jrr + jcc
@@ -593,7 +606,7 @@ def shi_tomasi(img: Image, /, *, sigma: float = 1.0, truncate: float = 4.0, mode
       >>> bool(fsjax.ops.shi_tomasi(quad).data[12, 12] > 0.01)
       True
     """
-    _check_sigma("shi_tomasi", sigma, truncate, mode)
+    _check_sigma("shi_tomasi", sigma, truncate, mode, img.data.shape)
     jrr, jrc, jcc = _structure_tensor(img.data, sigma, truncate, max_sigma, mode)
     d = jrr - jcc
     return Image(0.5 * (jrr + jcc - _safe_hypot(d, 2.0 * jrc)))
@@ -638,7 +651,7 @@ def structure_coherence(img: Image, /, *, sigma: float = 2.0, truncate: float = 
       >>> abs(float(fsjax.ops.structure_coherence(bowl).data[12, 12])) < 1e-9
       True
     """
-    _check_sigma("structure_coherence", sigma, truncate, mode)
+    _check_sigma("structure_coherence", sigma, truncate, mode, img.data.shape)
     jrr, jrc, jcc = _structure_tensor(img.data, sigma, truncate, max_sigma, mode)
     tr = jrr + jcc
     diff = _safe_hypot(jrr - jcc, 2.0 * jrc)

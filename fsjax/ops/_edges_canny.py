@@ -147,7 +147,7 @@ def canny(img: Image, /, *, sigma: float = 1.0, high_threshold: float = 0.025, l
       >>> bool(e.sum() > 40), float(np.max(np.abs(dist[e] - 10))) <= 1.0
       (True, True)
     """
-    _check_sigma("canny", sigma, truncate, mode)
+    _check_sigma("canny", sigma, truncate, mode, img.data.shape)
     check_range("canny", "high_threshold", high_threshold, 0.0, None)
     check_range("canny", "low_ratio", low_ratio, 0.0, 1.0)
     x = img.data

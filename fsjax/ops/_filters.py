@@ -39,13 +39,13 @@ from ..registry import IntKnob, LinKnob, LogKnob, register
 from ..types import Image, is_concrete
 from ._common import (
     check_choice,
+    check_kernel_extent,
     check_mode,
     check_positive,
     check_range,
     check_static_int,
     correlate1d,
     pad2d,
-    pad_axis,
     support_exceeded,
 )
 
@@ -477,18 +477,6 @@ def _wide_gaussian_matrix(n: int, sigma: float, truncate: float, mode: str) -> n
     return a / total
 
 
-def _corr1d_loop(x, w, axis: int, mode: str):
-    """``correlate1d`` as a ``fori_loop`` over the taps: the program size does not grow with them."""
-    axis = axis % x.ndim
-    n, r = x.shape[axis], w.shape[0] // 2
-    xp = pad_axis(x, r, r, axis, mode)
-
-    def body(k, acc):
-        return acc + w[k] * jax.lax.dynamic_slice_in_dim(xp, k, n, axis=axis)
-
-    return jax.lax.fori_loop(0, w.shape[0], body, jnp.zeros_like(x))
-
-
 def _gaussian_wide(x, sigma: float, truncate: float, mode: str, rad: int):
     """Concrete-sigma Gaussian with a long kernel: per axis a folded matrix (kernel wider than
     the axis) or a tap loop; compile time and memory do not grow with sigma."""
@@ -501,7 +489,7 @@ def _gaussian_wide(x, sigma: float, truncate: float, mode: str, rad: int):
         else:
             if taps is None:
                 taps = _gaussian_taps(float(sigma), rad, float(truncate), x.dtype)
-            x = _corr1d_loop(x, taps, axis, mode)
+            x = correlate1d(x, taps, axis=axis, mode=mode)  # > UNROLL_TAPS: a loop over the taps
     return x
 
 
@@ -622,6 +610,7 @@ def median(img: Image, /, *, radius: int = 1, footprint: str = "square", mode: s
     mr = _check_rank_common(op, footprint, mode, max_radius)
     r = _int_param(op, "radius", radius, lo=0)
     if r is not None:  # concrete radius: exact selection network on the static window
+        check_kernel_extent(op, "radius", r, img.data.shape)  # (2r + 1)^2 samples per pixel
         n = int(_offsets(r, footprint)[0].sum())
         return Image(_select_core(img.data, r=r, footprint=footprint, mode=mode, rank=n // 2))
     return Image(_order_core(img.data, radius, 0, wr=mr, footprint=footprint, mode=mode, kind="median"))
@@ -678,6 +667,7 @@ def rank_filter(img: Image, /, *, rank: int = 0, radius: int = 1, footprint: str
         raise TypeError(f"{op}: argument 'rank' must be a static int, got a traced value")
     r = _int_param(op, "radius", radius, lo=0)
     if r is not None:
+        check_kernel_extent(op, "radius", r, img.data.shape)  # (2r + 1)^2 samples per pixel
         n = int(_offsets(r, footprint)[0].sum())
         if not -n <= rk < n:
             raise ValueError(f"{op}: argument 'rank' must be in [{-n}, {n - 1}] for a window of "
@@ -805,6 +795,7 @@ def bilateral(img: Image, /, *, sigma_spatial: float = 1.0, sigma_range: float =
     check_positive(op, "max_sigma_spatial", max_sigma_spatial)
     check_mode(op, mode)
     rad = _gaussian_radius(sigma_spatial, truncate, max_sigma_spatial)
+    check_kernel_extent(op, "sigma_spatial", rad, img.data.shape)  # a disk of ~pi r^2 samples per pixel
     out = _bilateral_core(img.data, sigma_spatial, sigma_range, radius=rad, truncate=float(truncate), mode=mode)
     bad = support_exceeded(sigma_spatial, truncate, rad)  # traced sigma_spatial above its support: NaN
     return Image(out if bad is None else jnp.where(bad, jnp.nan, out))

@@ -47,7 +47,15 @@ from jax import lax
 
 from ..registry import IntKnob, register
 from ..types import Image, is_concrete
-from ._common import check_choice, check_mode, check_range, check_static_int, pad2d, pad_axis
+from ._common import (
+    check_choice,
+    check_kernel_extent,
+    check_mode,
+    check_range,
+    check_static_int,
+    pad2d,
+    pad_axis,
+)
 
 __all__ = ["erosion", "dilation", "opening", "closing", "top_hat", "bottom_hat", "morph_gradient"]
 
@@ -172,6 +180,8 @@ def flat_morph(x, radius, *, shape: str = "disk", dilate: bool = True, mode: str
 
 def _grey(op: str, img: Image, radius, shape, mode, cval, max_radius, dilate: bool):
     shape = _check_common(op, radius, shape, mode, max_radius)
+    if is_concrete(radius):
+        check_kernel_extent(op, "radius", math.floor(float(radius)), img.data.shape)
     out, bad = flat_morph(img.data, radius, shape=shape, dilate=dilate, mode=mode, cval=cval,
                           max_radius=max_radius)
     if bad is not None:

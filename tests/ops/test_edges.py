@@ -520,3 +520,23 @@ def test_wrong_sort_and_nan_input_rejected():
         ops.canny(fsjax.Region(jnp.zeros((8, 8), bool)))
     with pytest.raises(ValueError, match="sobel_amp"):
         ops.sobel_amp(Image(jnp.full((8, 8), jnp.nan)))
+
+
+def test_cost_bounded_by_the_image_and_long_kernels_exact():
+    """Issue 20 item 5 sweep: a concrete sigma / radius whose kernel is wider than the image is
+    refused with a clear error (before: sigma=1e6 built a 8M-tap program); a long kernel that
+    fits runs as a loop over its taps (program size constant) and stays exact."""
+    rng = np.random.default_rng(0)
+    x = rng.uniform(size=(70, 24))
+    img = Image(jnp.asarray(x))
+    y = np.asarray(fsjax.ops.gauss_deriv(img, sigma=16.5, component="x").data)  # 133 taps: the loop path
+    assert np.abs(y - ndi.gaussian_filter(x, 16.5, order=(0, 1))).max() < 1e-12
+    for call, msg in [(lambda: fsjax.ops.log(img, sigma=1e6), "log: argument 'sigma'.*larger than the image"),
+                      (lambda: fsjax.ops.harris(img, sigma=50.0), "harris: argument 'sigma'"),
+                      (lambda: fsjax.ops.canny(img, sigma=1e3), "canny: argument 'sigma'"),
+                      (lambda: fsjax.ops.dog(img, sigma=10.0, ratio=2.0), "dog: argument 'ratio'"),
+                      (lambda: fsjax.ops.median(img, radius=100), "median: argument 'radius'"),
+                      (lambda: fsjax.ops.bilateral(img, sigma_spatial=50.0), "bilateral: argument 'sigma_spatial'"),
+                      (lambda: fsjax.ops.erosion(img, radius=1e6), "erosion: argument 'radius'")]:
+        with pytest.raises(ValueError, match=msg):
+            call()
