@@ -119,25 +119,37 @@ def _masked_median(x, mask):
     return jnp.nanmedian(jnp.where(mask, x, jnp.nan))
 
 
-def _robust_loop(fit, resid, pts, valid, *, robust: bool, k, rounds: int, min_pts: int):
-    """Used-point mask after the robust rounds (no gradient flows through it)."""
+def _robust_fit(fit, resid, pts, valid, *, robust: bool, k, rounds: int, min_pts: int):
+    """``fit`` after ``rounds`` robust rounds: ``(params, ok, iterations, used)``.
+
+    Each round fits the used points and keeps those within ``k`` robust sigmas
+    (MAD) of the fit; the mask carries no gradient. The final fit is the last
+    pass of the same loop (``rounds + 1`` passes), so the solver is traced and
+    compiled once, not once in the loop and again after it (which doubled the
+    compile time of the LM-refined circle and ellipse fits).
+    """
     valid = jnp.asarray(valid)
     if not robust or rounds == 0:
-        return valid
+        params, ok, it, _ = fit(pts, valid.astype(pts.dtype))
+        return params, ok, it, valid
     p0 = jax.lax.stop_gradient(pts)
     spread = jnp.max(jnp.where(valid[:, None], jnp.abs(p0 - jnp.mean(p0, axis=0)), 0.0))
     floor = 1e-9 * jnp.maximum(spread, 1.0)
 
-    def body(_, used):
-        params, ok, _, _ = fit(p0, used.astype(p0.dtype))
-        r = resid(params, p0)
+    def body(i, carry):
+        used, _ = carry
+        params, ok, it, _ = fit(pts, used.astype(pts.dtype))
+        r = resid(jax.lax.stop_gradient(params), p0)
         med = _masked_median(r, valid)
         sigma = _MAD_SCALE * _masked_median(jnp.abs(r - med), valid)
         keep = valid & (jnp.abs(r) <= k * sigma + floor)
-        good = ok & jnp.all(jnp.isfinite(params)) & (jnp.sum(keep) >= min_pts)
-        return jnp.where(good, keep, used)
+        good = ok & jnp.all(jnp.isfinite(params)) & (jnp.sum(keep) >= min_pts) & (i < rounds)
+        return jnp.where(good, keep, used), (params, jnp.asarray(ok, bool), jnp.asarray(it, jnp.int32))
 
-    return jax.lax.fori_loop(0, rounds, body, valid)
+    shapes = jax.eval_shape(lambda: fit(pts, valid.astype(pts.dtype))[0])
+    init = (valid, (jnp.zeros(shapes.shape, shapes.dtype), jnp.asarray(False), jnp.asarray(0, jnp.int32)))
+    used, (params, ok, it) = jax.lax.fori_loop(0, rounds + 1, body, init)
+    return params, ok, it, used
 
 
 def _finish(params, ok, resid_fn, pts, used, iterations, names, kind):
@@ -181,8 +193,7 @@ def _fit_line_core(pts, valid, k, *, robust, rounds):
         params, ok, it, _ = _line_fit(p, w)
         return params, ok, it, None
 
-    used = _robust_loop(fit, _line_resid, pts, valid, robust=robust, k=k, rounds=rounds, min_pts=2)
-    params, ok, it, _ = fit(pts, used.astype(pts.dtype))
+    params, ok, it, used = _robust_fit(fit, _line_resid, pts, valid, robust=robust, k=k, rounds=rounds, min_pts=2)
     return _finish(params, ok, _line_resid, pts, used, it, ("row", "col", "angle_deg"), "line")
 
 
@@ -288,8 +299,8 @@ def _circle_resid(params, pts):
 @functools.partial(jax.jit, static_argnames=("robust", "rounds", "refine", "max_steps"))
 def _fit_circle_core(pts, valid, k, *, robust, rounds, refine, max_steps):
     fit = functools.partial(_circle_fit, refine=refine, max_steps=max_steps)
-    used = _robust_loop(fit, _circle_resid, pts, valid, robust=robust, k=k, rounds=rounds, min_pts=3)
-    params, ok, it, _ = fit(pts, used.astype(pts.dtype))
+    params, ok, it, used = _robust_fit(fit, _circle_resid, pts, valid, robust=robust, k=k, rounds=rounds,
+                                       min_pts=3)
     return _finish(params, ok, _circle_resid, pts, used, it, ("row", "col", "radius"), "circle")
 
 
@@ -513,8 +524,8 @@ def _ellipse_resid(params, pts):
 @functools.partial(jax.jit, static_argnames=("robust", "rounds", "refine", "max_steps"))
 def _fit_ellipse_core(pts, valid, k, *, robust, rounds, refine, max_steps):
     fit = functools.partial(_ellipse_fit, refine=refine, max_steps=max_steps)
-    used = _robust_loop(fit, _ellipse_resid, pts, valid, robust=robust, k=k, rounds=rounds, min_pts=5)
-    params, ok, it, _ = fit(pts, used.astype(pts.dtype))
+    params, ok, it, used = _robust_fit(fit, _ellipse_resid, pts, valid, robust=robust, k=k, rounds=rounds,
+                                       min_pts=5)
     return _finish(params, ok, _ellipse_resid, pts, used, it, ("row", "col", "a", "b", "angle_deg"), "ellipse")
 
 
