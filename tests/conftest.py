@@ -11,6 +11,16 @@ import gc
 import os
 import time
 
+# One BLAS/LAPACK thread per test process. numpy, scipy and jaxlib's CPU linear algebra call
+# OpenBLAS, which by default starts a thread per core and spin-waits between calls; with two
+# xdist workers on two cores (and more so on a shared machine) those threads fight each
+# other. Measured on a loaded 2-core machine: one compiled 14-view calibrate_camera call
+# took 2-3 s of CPU (12-21 s wall) with the default and 0.07 s (0.6-0.8 s wall) with one
+# thread; results are identical. Set before numpy is imported (pytest and its plugins do not
+# import it); a value given by the caller is kept.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 # XLA compiles thousands of small programs in this suite (eager op-by-op dispatch compiles
 # one per primitive and shape) and compilation, not execution, dominates its run time.
 # LLVM's optimisation level changes speed only, not results: XLA:CPU does not enable
@@ -75,7 +85,7 @@ def pytest_runtest_logreport(report):
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    if getattr(config, "_fsjax_cache", ""):
+    if getattr(config, "_fsjax_cache", "") and _SAVED["hits"] + _SAVED["misses"]:
         terminalreporter.write_line(
             f"compile cache ({'shared, per run' if getattr(config, '_fsjax_cache_own', False) else config._fsjax_cache}): "
             f"{_SAVED['hits']} programs loaded, {_SAVED['misses']} compiled and offered, "
