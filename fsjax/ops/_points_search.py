@@ -515,8 +515,8 @@ def build_index(ref_xyz: Any, ref_valid: Any = None, *, k: int = 8, cell: Any = 
     the same points with cells 4x and 16x larger, searched (3 x 3 x 3 and 5 x 5 x 5 blocks
     of the first, 3 x 3 x 3 of the second) before that fallback: for queries that are
     typically several cells away from the cloud (the first iterations of ICP); on the bunny
-    at 20,000 points moved by 10 deg this cut the points sent to the brute-force scan from
-    about 80 % to under 1 %.
+    at 20,000 points moved by 10 deg (cells sized for k = 4), 82 % of the queries are not
+    certified by the finest 27-cell block and 4 % still not after the 4x level's blocks.
     """
     ref = jnp.asarray(ref_xyz)
     if ref.ndim != 2 or ref.shape[-1] != 3:
