@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .registry import OpSpec, get_op, poison
+from .registry import OpSpec, get_op, poison, truncation_poison
 from .types import Sort, is_concrete
 
 __all__ = ["apply", "pipeline", "run_pipeline", "Pipeline", "PipelineTypeError", "Stage"]
@@ -136,7 +136,7 @@ class Stage:
         else:
             kp = self.spec.knob_params(self.a, self.b, strict=False)
         kp = {k: v for k, v in kp.items() if k not in params}
-        out = self.spec.raw(x, **kp, **params)
+        out = truncation_poison(self.spec, (x,), self.spec.raw(x, **kp, **params))
         # a traced knob outside [0, 1] (or NaN): fail closed instead of computing a clamped value
         return poison(out, self.knob_bad(knob_row), who=f"pipeline stage ({self.name})")
 

@@ -271,6 +271,26 @@ def poison(out: Any, bad: Any, *, who: str) -> Any:
     return out
 
 
+def truncation_poison(spec: OpSpec, args: tuple, out: Any) -> Any:
+    """Fail closed on capacity overflow: an op that reduces an input whose fixed capacity
+    overflowed (``truncated``: a Contour, Labels or Points missing data) to a number
+    (``Feature``, ``Fit``) gets a NaN result (``Fit``: ``converged`` False), because a length,
+    area or fit of the points that fitted would be a plausible wrong number. Ops whose output
+    carries ``truncated`` itself pass the flag on instead."""
+    from .types import Feature, Fit
+
+    if spec.gives not in (Feature, Fit):
+        return out
+    bad = None
+    for a in args:
+        t = getattr(a, "truncated", None)
+        if t is None or (is_concrete(t) and not bool(np.any(np.asarray(t)))):
+            continue
+        b = jnp.any(jnp.asarray(t))
+        bad = b if bad is None else bad | b
+    return poison(out, bad, who=spec.name)
+
+
 def _fmt(u) -> str:
     try:
         return f"{float(u):g}"
@@ -377,7 +397,7 @@ def register(
                         f"{sort.__name__}; ops take one instance, batch with jax.vmap"
                     )
                 arg.check(op=opname, arg=pname)
-            return _call(opname, fn, args, kwargs)
+            return truncation_poison(spec, args, _call(opname, fn, args, kwargs))
 
         spec = OpSpec(
             name=opname,

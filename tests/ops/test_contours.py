@@ -279,3 +279,24 @@ def test_bad_parameters_raise():
         fsjax.ops.contour_length(c, max_gap=0.0)
     with pytest.raises(ValueError, match="iso_contour.*img"):
         fsjax.ops.iso_contour(fsjax.Image(jnp.zeros((1, 5))))
+
+
+def test_numbers_from_truncated_inputs_are_nan():
+    """Issue 20 sweep (capacity defaults): a length, area or fit of a Contour whose capacity
+    overflowed used to be the plausible number of the points that fitted; now NaN / not
+    converged, directly, through apply and in a pipeline. An untruncated input is unchanged."""
+    x = np.zeros((12, 20))
+    x[2:5, 2:5] = 1.0
+    x[6:10, 10:17] = 1.0
+    full = fsjax.ops.iso_contour(_img(x), level=0.5, capacity=64)
+    part = fsjax.ops.iso_contour(_img(x), level=0.5, capacity=8)
+    assert bool(part.truncated) and not bool(full.truncated)
+    assert math.isfinite(float(fsjax.ops.contour_length(full).value))
+    assert math.isnan(float(fsjax.ops.contour_length(part).value))
+    assert math.isnan(float(fsjax.apply(part, "contour_area").value))
+    f = fsjax.ops.fit_circle(part)
+    assert not bool(f.converged) and bool(jnp.all(jnp.isnan(f.params)))
+    p = fsjax.pipeline([("iso_contour", {"level": 0.5, "capacity": 8}), "contour_length"])
+    assert math.isnan(float(p(_img(x)).value))
+    lab = fsjax.ops.label(fsjax.Region(jnp.asarray(x > 0.5)), capacity=1)
+    assert bool(lab.truncated) and math.isnan(float(fsjax.ops.mean_area(lab).value))
