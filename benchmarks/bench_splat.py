@@ -117,6 +117,7 @@ def _module_at(rev: str):
     src = src.replace("from ..types import", "from fsjax.types import").replace(
         "from .camera import", "from fsjax.render.camera import")
     mod = types.ModuleType("splat_before")
+    sys.modules["splat_before"] = mod  # dataclasses (equinox modules) look their module up
     exec(compile(src, f"splat.py@{rev}", "exec"), mod.__dict__)
     return mod
 

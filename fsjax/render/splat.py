@@ -363,9 +363,12 @@ _TRACED_PAIRS_PER_TILE = 256
 
 def _bucket(n: int) -> int:
     """Buffer size for a measured demand ``n`` (splat-tile pairs here, triangle-pixel candidates in
-    :mod:`fsjax.render.raster`): the next power of two of ``1.125 n`` (at least 1,024), so a
-    slowly growing demand recompiles O(log n) times, not every step."""
-    return int(max(1024, 1 << int(np.ceil(np.log2(max(1.125 * float(n), 1.0))))))
+    :mod:`fsjax.render.raster`): ``1.125 n`` rounded up to a quarter-octave step ``(4 + i) 2^k / 4``
+    (at least 1,024), so the slack is at most ~40 % and a slowly growing demand recompiles
+    O(log n) times (four per doubling), not every step."""
+    need = max(1.125 * float(n), 1024.0)
+    k = int(np.floor(np.log2(need))) - 2
+    return int(-(-need // (1 << k)) * (1 << k))
 
 
 def _slot_owner(start, k, B):
