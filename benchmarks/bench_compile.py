@@ -302,9 +302,21 @@ def _goal(r):
         return GOAL_OP
     if r["kind"] == "pipeline":
         return GOAL_PIPELINE
-    if "splat" in r["name"]:
+    if r["name"].startswith("splat training step"):
         return GOAL_SPLAT
     return GOAL_FIT
+
+
+def _heavy_second(r):
+    """A second call costing over 20 % of the first: it recompiles or runs eager work each call, so the CPU
+    difference is only a lower bound of the compile cost."""
+    return "first_call" in r and r["steady"] > 0.2 * r["first_call"]
+
+
+def _state(r):
+    if r["cpu"] > _goal(r):
+        return "**not reached**"
+    return "undetermined (CPU is a lower bound)" if _heavy_second(r) else "reached"
 
 
 _HEAD = ["| name | kind | CPU s | wall s | trace s | lower s | compile s | steady | first call | goal (CPU) |",
@@ -315,7 +327,7 @@ def _fmt_row(r):
     if "error" in r:
         return f"| {r['name']} | {r['kind']} | error: {r['error']} | | | | | | | |"
     first = f"{r['first_call']:.2f} s" if "first_call" in r else ""
-    ok = "reached" if r["cpu"] <= _goal(r) else "**not reached**"
+    ok = _state(r)
     return (f"| {r['name']} | {r['kind']} | {r['cpu']:.2f} | {r['total']:.2f} | {r['trace']:.2f} | {r['lower']:.2f} | "
             f"{r['compile']:.2f} | {r['steady'] * 1e3:.1f} ms | {first} | {ok} (<= {_goal(r):g} s) |")
 
@@ -350,15 +362,17 @@ def write_doc(data):
         if not items:
             return f"* {label}: not measured in this run"
         bad = [r for r in items if r["cpu"] > goal]
+        und = [r for r in items if _state(r).startswith("undetermined")]
         worst = max(items, key=lambda r: r["cpu"])
-        state = "**reached**" if not bad else f"**not reached** ({len(bad)} of {len(items)} over)"
+        state = ("**reached**" if not bad and not und else f"**not reached** ({len(bad)} of {len(items)} over)"
+                 if bad else f"**undetermined** ({len(und)} of {len(items)} recompile on every call)")
         return f"* {label} <= {goal:g} s: {state}; worst {worst['name']} {worst['cpu']:.2f} s CPU"
 
     L.append(goal_line("every registered op", ops, GOAL_OP))
     L.append(goal_line("6-stage pipeline", pipe, GOAL_PIPELINE))
     L.append(goal_line("every fit/render function (docstring example) and named target",
-                       [r for r in ex if "splat" not in r["name"]], GOAL_FIT))
-    L.append(goal_line("splat training step", [r for r in ex if "splat" in r["name"]], GOAL_SPLAT))
+                       [r for r in ex if _goal(r) == GOAL_FIT], GOAL_FIT))
+    L.append(goal_line("splat training step", [r for r in ex if _goal(r) == GOAL_SPLAT], GOAL_SPLAT))
     errs = [r for r in rows if "error" in r]
     if errs:
         L += ["", f"{len(errs)} item(s) could not be measured (listed at the end)."]
