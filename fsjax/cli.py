@@ -12,7 +12,7 @@
     names and knobs), ``DIR/baselines.md`` and ``DIR/log.csv``.
 ``fsjax tour --out DIR [--quick] [--sections a,b] [--list]``
     the library's main job: a scored tour of what fsjax measures; writes
-    ``DIR/report.md`` and figures; a running section prints a progress line every 10 s.
+    ``DIR/report.md`` and figures; a running section prints a progress line every 15 s.
 
 ``tour``, ``run`` and ``evolve`` keep compiled programs in JAX's persistent compilation
 cache (``fsjax.enable_compile_cache``: the user's cache directory, ``FSJAX_CACHE_DIR``

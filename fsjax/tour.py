@@ -38,6 +38,7 @@ class Section:
     figure: str | None = None
     notes: str = ""
     seconds: float = 0.0
+    cpu_seconds: float = 0.0  # process CPU time (all threads): comparable on a shared machine
 
 
 def _to_u8(a: np.ndarray, signed: bool = False) -> np.ndarray:
@@ -367,7 +368,7 @@ class _Heartbeat:
     (compiling, fitting) is never mistaken for a hang. Sections name their current step with
     :func:`step`; the heartbeat line shows it with the elapsed time."""
 
-    def __init__(self, every: float = 10.0, stream=None):
+    def __init__(self, every: float = 15.0, stream=None):
         import sys
         import threading
 
@@ -427,7 +428,7 @@ def section_names() -> list[str]:
 
 
 def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=print,
-             heartbeat_s: float = 10.0, blas_threads: int | None = 1) -> list[Section]:
+             heartbeat_s: float = 15.0, blas_threads: int | None = 1) -> list[Section]:
     """Run every section, write figures and ``report.md`` into ``out_dir``; return the sections.
 
     Args:
@@ -467,12 +468,13 @@ def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=pri
     _HEARTBEAT = hb
     try:
         for i, fn in enumerate(todo):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             log(f"[{i + 1}/{len(todo)}] {fn.__name__} ...", end="", flush=True) if log is print else log(fn.__name__)
             if hb is not None:
                 hb.start(fn.__name__)
             sec = fn(out, quick)
             sec.seconds = time.perf_counter() - t0
+            sec.cpu_seconds = time.process_time() - c0
             if hb is not None:
                 hb.section = ""
             results.append(sec)
@@ -481,7 +483,8 @@ def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=pri
             jax.clear_caches()
             if log is print:
                 lead = f"    {fn.__name__}:" if hb is not None and hb.printed else ""
-                print(f"{lead} {sec.seconds:.1f} s, beats null: {sec.beats_null}", flush=True)
+                print(f"{lead} {sec.seconds:.1f} s (CPU {sec.cpu_seconds:.1f} s), beats null: {sec.beats_null}",
+                      flush=True)
     finally:
         if hb is not None:
             hb.stop()
@@ -510,7 +513,7 @@ def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=pri
             lines += ["", s.notes]
         if s.figure:
             lines += ["", f"![{s.title}]({s.figure})"]
-        lines += ["", f"_{s.seconds:.1f} s_"]
+        lines += ["", f"_{s.seconds:.1f} s (CPU {s.cpu_seconds:.1f} s)_"]
     (out / "report.md").write_text("\n".join(lines) + "\n")
     if log is print:
         print(f"wrote {out / 'report.md'} ({total:.1f} s" + (f", peak memory {peak_mb:.0f} MB)" if peak_mb else ")"))
