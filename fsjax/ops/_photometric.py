@@ -136,13 +136,30 @@ def _pool_normalmap(variant, size):
 # ---------------------------------------------------------------------------
 
 
+def _det(a):
+    """Determinant of ``(..., 2, 2)`` or ``(..., 3, 3)`` matrices in closed form.
+
+    The per-pixel solvers use no LAPACK: jaxlib 0.10's batched CPU LAPACK kernels (``det``
+    and ``solve`` via LU, ``eigvalsh``) can deadlock XLA:CPU's thread pool when two run at
+    once (tools/repro_xla_hang.py; this op hung that way), so the 2x2 / 3x3 algebra is
+    written out (``fsjax/fit/_smalllinalg.py``).
+    """
+    if a.shape[-1] == 2:
+        return a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    return (a[..., 0, 0] * (a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1])
+            - a[..., 0, 1] * (a[..., 1, 0] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 0])
+            + a[..., 0, 2] * (a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0]))
+
+
 def _wls(L, meas, w):
     """Weighted least squares ``argmin sum w (L b - meas)^2`` with a rank test (3 x 3 normal equations)."""
+    from ..fit._smalllinalg import eigh_small, solve_small  # no LAPACK: see _det below
+
     A = L.T @ (w[:, None] * L)
     y = L.T @ (w * meas)
-    ev = jnp.linalg.eigvalsh(A)
+    ev = eigh_small(A)[0]
     ok = (ev[-1] > 0) & (ev[0] > 1e-8 * ev[-1])
-    b = jnp.linalg.solve(jnp.where(ok, A, jnp.eye(3, dtype=A.dtype)), y)
+    b = solve_small(jnp.where(ok, A, jnp.eye(3, dtype=A.dtype)), y)
     return b, ok
 
 
@@ -157,10 +174,12 @@ def _two_light_qp(L, meas, lit, thr):
     dt = L.dtype
     idx = jnp.argsort(~lit, stable=True)[:2]
     L2, I2 = L[idx], meas[idx]
+    from ..fit._smalllinalg import solve_small
+
     G = L2 @ L2.T
-    detG = jnp.linalg.det(G)
+    detG = _det(G)
     okG = detG > 1e-8
-    b0 = L2.T @ jnp.linalg.solve(jnp.where(okG, G, jnp.eye(2, dtype=dt)), I2)
+    b0 = L2.T @ solve_small(jnp.where(okG, G, jnp.eye(2, dtype=dt)), I2)
     v = jnp.cross(L2[0], L2[1])
     vn = jnp.linalg.norm(v)
     v = v / jnp.where(vn > 0, vn, 1.0)
@@ -186,10 +205,12 @@ def _lmeds(L, meas, triplets, h):
     """Least median of squares over all light triplets: exact 3 x 3 solves, criterion = h-th smallest r^2."""
     Lt = L[triplets]  # (T, 3, 3)
     It = meas[triplets]  # (T, 3)
-    det = jnp.linalg.det(Lt)
+    from ..fit._smalllinalg import solve_small
+
+    det = _det(Lt)
     ok = jnp.abs(det) > 1e-6
     eye = jnp.eye(3, dtype=L.dtype)
-    b = jnp.linalg.solve(jnp.where(ok[:, None, None], Lt, eye), It[..., None])[..., 0]  # (T, 3)
+    b = solve_small(jnp.where(ok[:, None, None], Lt, eye), It)  # (T, 3)
     r2 = (b @ L.T - meas[None]) ** 2  # (T, K)
     crit = jnp.sort(r2, axis=1)[:, h - 1]
     crit = jnp.where(ok, crit, jnp.inf)
