@@ -37,13 +37,19 @@ print(json.dumps({"import_s": t1 - t0, "sections_s": t2 - t1,
 
 
 def _run(cache: str, thr: float, sections: str) -> dict:
+    import resource
+
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     env.pop("XLA_FLAGS", None)
     t0 = time.perf_counter()
+    c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     r = subprocess.run([sys.executable, "-c", _CHILD, cache, str(thr), sections], capture_output=True, text=True,
                        env=env, check=True)
+    c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     out = json.loads(r.stdout.strip().splitlines()[-1])
     out["wall_s"] = time.perf_counter() - t0
+    out["cpu_s"] = (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)
+    out["peak_mb"] = c1.ru_maxrss / 1e3
     return out
 
 
@@ -66,7 +72,8 @@ def main(argv=None) -> None:
             n, nbytes = _size(Path(d))
             warm = _run(d, thr, a.sections)
             rows.append((thr, cold, warm, n, nbytes))
-            print(f"threshold {thr:g} s: cold {cold['wall_s']:.1f} s, warm {warm['wall_s']:.1f} s, "
+            print(f"threshold {thr:g} s: cold {cold['wall_s']:.1f} s (CPU {cold['cpu_s']:.1f}), "
+                  f"warm {warm['wall_s']:.1f} s (CPU {warm['cpu_s']:.1f}), "
                   f"{n} entries, {nbytes / 1e6:.1f} MB", flush=True)
     load1 = os.getloadavg()
     lines = [
@@ -81,12 +88,12 @@ def main(argv=None) -> None:
         + (" — shared machine: compare within the table, not with other pages." if max(load0[0], load1[0]) > 1.5
            else " (idle)."),
         "",
-        "| min_compile_time_s | cold run (s) | warm run (s) | warm / cold | entries | size (MB) |",
+        "| min_compile_time_s | cold run: wall (CPU) s | warm run: wall (CPU) s | warm / cold (CPU) | entries | size (MB) |",
         "|---|---|---|---|---|---|",
     ]
     for thr, cold, warm, n, nbytes in rows:
-        lines.append(f"| {thr:g} | {cold['wall_s']:.1f} | {warm['wall_s']:.1f} | "
-                     f"{warm['wall_s'] / cold['wall_s']:.2f} | {n} | {nbytes / 1e6:.1f} |")
+        lines.append(f"| {thr:g} | {cold['wall_s']:.1f} ({cold['cpu_s']:.1f}) | {warm['wall_s']:.1f} ({warm['cpu_s']:.1f}) | "
+                     f"{warm['cpu_s'] / cold['cpu_s']:.2f} | {n} | {nbytes / 1e6:.1f} |")
     lines += ["", "Per section (s), cold / warm:", "", "| section | " + " | ".join(f"thr {r[0]:g}" for r in rows) + " |",
               "|---|" + "---|" * len(rows)]
     for title in rows[0][1]["per_section"]:
