@@ -39,6 +39,7 @@ class Section:
     notes: str = ""
     seconds: float = 0.0
     cpu_seconds: float = 0.0  # process CPU time (all threads): comparable on a shared machine
+    peak_mb: float | None = None  # the process's peak resident memory once this section ended
 
 
 def _to_u8(a: np.ndarray, signed: bool = False) -> np.ndarray:
@@ -475,6 +476,7 @@ def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=pri
             sec = fn(out, quick)
             sec.seconds = time.perf_counter() - t0
             sec.cpu_seconds = time.process_time() - c0
+            sec.peak_mb = _peak_rss_mb()
             if hb is not None:
                 hb.section = ""
             results.append(sec)
@@ -483,7 +485,8 @@ def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=pri
             jax.clear_caches()
             if log is print:
                 lead = f"    {fn.__name__}:" if hb is not None and hb.printed else ""
-                print(f"{lead} {sec.seconds:.1f} s (CPU {sec.cpu_seconds:.1f} s), beats null: {sec.beats_null}",
+                mem = f", peak {sec.peak_mb:.0f} MB" if sec.peak_mb else ""
+                print(f"{lead} {sec.seconds:.1f} s (CPU {sec.cpu_seconds:.1f} s{mem}), beats null: {sec.beats_null}",
                       flush=True)
     finally:
         if hb is not None:
@@ -513,7 +516,8 @@ def run_tour(out_dir: str | Path, *, quick: bool = False, sections=None, log=pri
             lines += ["", s.notes]
         if s.figure:
             lines += ["", f"![{s.title}]({s.figure})"]
-        lines += ["", f"_{s.seconds:.1f} s (CPU {s.cpu_seconds:.1f} s)_"]
+        lines += ["", f"_{s.seconds:.1f} s (CPU {s.cpu_seconds:.1f} s)"
+                  + (f"; peak memory so far {s.peak_mb:.0f} MB_" if s.peak_mb else "_")]
     (out / "report.md").write_text("\n".join(lines) + "\n")
     if log is print:
         print(f"wrote {out / 'report.md'} ({total:.1f} s" + (f", peak memory {peak_mb:.0f} MB)" if peak_mb else ")"))
