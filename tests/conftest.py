@@ -35,12 +35,15 @@ import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 # Clean-clone runs hung inside XLA:CPU (main thread in BlockUntilReady on a vmapped
-# model-selection fit, every XLA thread idle; py-spy). Synchronous CPU dispatch was tried
-# against it and did NOT prevent it (the same test hung again with it); it is kept only
-# because the last full run, which passed everything else, used it. That test is skipped
-# (tests/fit/test_primitives3d.py, reason stated). A hang elsewhere is ended by
-# pytest-timeout's thread method (pyproject: timeout_method = "thread") with every stack
-# dumped, failing the test instead of stalling the run.
+# model-selection fit, every XLA thread idle). The cause (gdb stacks; tools/repro_xla_hang.py):
+# jaxlib 0.10's batched LAPACK kernels (eigh, LU, QR, ...) split their batch onto XLA:CPU's
+# intra-op pool and block on it; when as many of them run at once as the pool has threads (2
+# here), no thread is left to do the work. select_model, the 3-D primitive fits and
+# photometric_stereo now use no LAPACK (fsjax/fit/_smalllinalg.py) and the 200-per-model test
+# runs again. Synchronous CPU dispatch does not prevent the deadlock (measured); it is kept
+# because every full run since has used it. A hang elsewhere is ended by pytest-timeout's
+# thread method (pyproject: timeout_method = "thread") with every stack dumped, failing the
+# test instead of stalling the run.
 jax.config.update("jax_cpu_enable_async_dispatch", False)
 
 
