@@ -92,7 +92,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
         terminalreporter.write_line(
             f"compile cache ({'shared, per run' if getattr(config, '_fsjax_cache_own', False) else config._fsjax_cache}): "
             f"{_SAVED['hits']} programs loaded, {_SAVED['misses']} compiled and offered, "
-            f"{_SAVED['saved_s']:.0f} s of compilation saved")
+            f"{round(_SAVED['saved_s'])} s of compilation saved (as recorded at compile time)")
     if not _FIGURES:
         return
     terminalreporter.section("measured figures (printed by passing tests)")
