@@ -1,5 +1,6 @@
 """Shared helpers for op families: boundary handling, separable correlation,
-eager parameter checks and dtype-keyed epsilons.
+dtype-keyed epsilons. Argument checks live in :mod:`fsjax._checks` (one message
+style for ops, fits and renderers).
 
 Boundary modes use SciPy's names (``scipy.ndimage``), so conformance tests can
 pass the same string to both libraries:
@@ -15,8 +16,8 @@ fsjax / SciPy mode      extension of ``a b c d``            ``jnp.pad`` mode
 ======================  ==================================  ================
 
 Correlation is written as shift-and-add over a static number of taps: on a
-CPU, XLA's convolution is ~20x slower than this for small kernels (measured,
-see ``DESIGN.md``). Tap weights may be traced, so a kernel whose *values*
+CPU, XLA's convolution is ~20x slower than this for small kernels (measured;
+see ``docs/benchmarks.md``). Tap weights may be traced, so a kernel whose *values*
 depend on a knob (sigma) compiles once for all knob values.
 """
 
@@ -27,7 +28,14 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ..types import is_concrete
+from .._checks import (  # noqa: F401  (re-exported for the op modules)
+    _concrete_float,
+    check_choice,
+    check_positive,
+    check_range,
+    check_static_int,
+    is_concrete,
+)
 
 MODES = ("reflect", "mirror", "nearest", "wrap", "constant")
 UNROLL_TAPS = 129  # correlate1d unrolls kernels up to this many taps, loops over longer ones
@@ -115,35 +123,6 @@ def eps(dtype: Any) -> float:
     return float(jnp.finfo(dtype).eps)
 
 
-def _concrete_float(v: Any, op: str = "", name: str = ""):
-    if not is_concrete(v):
-        return None
-    if isinstance(v, (str, bytes)):  # np.asarray("2", dtype=float) would quietly accept it
-        raise TypeError(f"{op}: argument {name!r} must be a number, got {type(v).__name__} {v!r}")
-    try:
-        arr = np.asarray(v, dtype=float)
-    except (TypeError, ValueError):
-        raise TypeError(f"{op}: argument {name!r} must be a number, got {type(v).__name__} {v!r}") from None
-    return arr
-
-
-def check_range(op: str, name: str, v: Any, lo: float | None = None, hi: float | None = None,
-                *, lo_open: bool = False, hi_open: bool = False) -> None:
-    """Eagerly check a concrete parameter against ``[lo, hi]`` (open ends optional).
-
-    Traced values are not checked (they come from knobs, which are range-mapped).
-    """
-    arr = _concrete_float(v, op, name)
-    if arr is None:
-        return
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{op}: argument {name!r} must be finite, got {v}")
-    if lo is not None and (np.any(arr <= lo) if lo_open else np.any(arr < lo)):
-        raise ValueError(f"{op}: argument {name!r} must be {'>' if lo_open else '>='} {lo:g}, got {v}")
-    if hi is not None and (np.any(arr >= hi) if hi_open else np.any(arr > hi)):
-        raise ValueError(f"{op}: argument {name!r} must be {'<' if hi_open else '<='} {hi:g}, got {v}")
-
-
 def support_exceeded(sigma: Any, truncate: float, radius: int) -> Any:
     """Traced bool: a *traced* ``sigma`` whose kernel radius ``int(truncate * sigma + 0.5)``
     exceeds the static support ``radius`` (or is NaN); ``None`` for a concrete ``sigma``
@@ -164,35 +143,6 @@ def check_kernel_extent(op: str, name: str, radius: int, shape: tuple[int, ...])
         raise ValueError(f"{op}: argument {name!r} gives a kernel radius of {radius} px, larger than the image "
                          f"({'x'.join(map(str, shape[-2:]))}); the bound is radius <= {side} px "
                          f"(for wider smoothing use gaussian, which folds any width exactly)")
-
-
-def check_positive(op: str, name: str, v: Any) -> None:
-    """Eagerly check that a concrete parameter is > 0."""
-    check_range(op, name, v, 0.0, None, lo_open=True)
-
-
-def check_static_int(op: str, name: str, v: Any, lo: int | None = None, hi: int | None = None) -> int:
-    """A parameter that fixes an array shape must be a Python int (static); check and return it."""
-    if not is_concrete(v) or isinstance(v, bool):
-        raise TypeError(f"{op}: argument {name!r} fixes an array shape and must be a static int, got {type(v).__name__}")
-    try:
-        iv = int(v)
-    except (TypeError, ValueError):
-        raise TypeError(f"{op}: argument {name!r} must be an int, got {v!r}") from None
-    if iv != v:
-        raise TypeError(f"{op}: argument {name!r} must be an integer, got {v!r}")
-    if lo is not None and iv < lo:
-        raise ValueError(f"{op}: argument {name!r} must be >= {lo}, got {iv}")
-    if hi is not None and iv > hi:
-        raise ValueError(f"{op}: argument {name!r} must be <= {hi}, got {iv}")
-    return iv
-
-
-def check_choice(op: str, name: str, v: Any, choices: tuple[str, ...]) -> str:
-    """Check a static string option against its allowed set."""
-    if v not in choices:
-        raise ValueError(f"{op}: argument {name!r} must be one of {', '.join(map(repr, choices))}; got {v!r}")
-    return v
 
 
 def float_dtype(x: Any):

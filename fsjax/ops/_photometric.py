@@ -37,7 +37,8 @@ from jaxtyping import Array, Bool, Float
 
 from ..registry import LinKnob, register
 from ..synth._pool import register_pool
-from ..types import Image, Sort, _as_array, is_concrete
+from ..types import Image, Sort, is_concrete
+from ..types._base import _as_array
 from ._common import check_choice, check_positive, check_range
 
 __all__ = ["LightStack", "NormalMap", "photometric_stereo", "relight", "frankot_chellappa"]

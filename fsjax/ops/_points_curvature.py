@@ -33,7 +33,8 @@ from jaxtyping import Array, Bool, Float
 
 from ..registry import register
 from ..synth._pool import register_pool
-from ..types import Points, Sort, _as_array
+from ..types import Points, Sort
+from ..types._base import _as_array
 from ._common import check_static_int
 from ._points import _valid_mask, knn, pca_frames
 

@@ -27,7 +27,8 @@ from jaxtyping import Array, Bool, Int
 
 from ..registry import LinKnob, LogKnob, register
 from ..synth._pool import register_pool
-from ..types import Points, Sort, _as_array
+from ..types import Points, Sort
+from ..types._base import _as_array
 from ._common import check_positive, check_range, check_static_int
 from ._points import _replace, _valid_mask
 from ._points_search import radius_search

@@ -40,7 +40,8 @@ from jaxtyping import Array, Float
 from ..registry import LinKnob, register
 from ..render.camera import pixel_rays
 from ..synth._pool import register_pool
-from ..types import Camera, Depth, Image, Sort, _as_array
+from ..types import Camera, Depth, Image, Sort
+from ..types._base import _as_array
 from ._common import check_range
 
 __all__ = ["FringeStack", "GrayStack", "StructuredLightRig", "wrapped_phase", "graycode_decode",

@@ -1,0 +1,205 @@
+"""Measurement records: a measured number, matches, region properties, 2-D fits, 1-D edges.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from ._base import Sort, _as_array
+
+__all__ = ["Feature", "Match", "RegionProps", "Fit", "Edges1D"]
+
+
+class Feature(Sort):
+    """One measured number, shape ``(*batch,)``; ``unit`` names its unit (static)."""
+
+    _array_field = "value"
+
+    value: Float[Array, "*batch"]
+    unit: str = eqx.field(static=True, default="")
+    _float_fields = ()  # a measured NaN is a legitimate "could not measure"
+
+    def __init__(self, value: Any, unit: str = ""):
+        self.value = _as_array(value, sort="Feature", field="value", kind="float", min_ndim=0)
+        self.unit = unit
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.value.shape)
+
+    def __float__(self) -> float:
+        return float(self.value)
+
+
+class Match(Sort):
+    """Found instances of a model, fixed capacity ``K``.
+
+    Per instance: sub-pixel ``row``/``col`` of the model's reference point in the
+    image, ``angle_deg`` (counter-clockwise as seen on screen, i.e. rotating the
+    +col axis towards -row), ``scale``, ``score`` (method-specific, higher is
+    better), ``valid``. Valid instances come first, sorted by descending score;
+    ``truncated`` is True when more instances passed the acceptance test than
+    the capacity holds. Unused slots carry no meaning (the matching ops fill
+    them with zeros and scale 1): always read ``valid``.
+    """
+
+    row: Float[Array, "*batch K"]
+    col: Float[Array, "*batch K"]
+    angle_deg: Float[Array, "*batch K"]
+    scale: Float[Array, "*batch K"]
+    score: Float[Array, "*batch K"]
+    valid: Bool[Array, "*batch K"]
+    truncated: Bool[Array, "*batch"]
+    _float_fields = ()  # unused slots are not checked
+
+    def __init__(self, row: Any, col: Any, score: Any, valid: Any = None, angle_deg: Any = None,
+                 scale: Any = None, truncated: Any = False):
+        self.row = _as_array(row, sort="Match", field="row", kind="float", min_ndim=1)
+        shape = self.row.shape
+        dt = self.row.dtype
+        self.col = _as_array(col, sort="Match", field="col", kind="float", min_ndim=1)
+        self.score = _as_array(score, sort="Match", field="score", kind="float", min_ndim=1)
+        self.angle_deg = _as_array(jnp.zeros(shape, dt) if angle_deg is None else angle_deg, sort="Match",
+                                   field="angle_deg", kind="float", min_ndim=1)
+        self.scale = _as_array(jnp.ones(shape, dt) if scale is None else scale, sort="Match", field="scale",
+                               kind="float", min_ndim=1)
+        self.valid = _as_array(jnp.ones(shape, bool) if valid is None else valid, sort="Match", field="valid",
+                               kind="bool", min_ndim=1)
+        for name in ("col", "score", "angle_deg", "scale", "valid"):
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"Match({name}=...): shape {getattr(self, name).shape} does not match row {shape}")
+        self.truncated = jnp.asarray(truncated, dtype=bool)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.row.shape[:-1])
+
+
+class RegionProps(Sort):
+    """Per-label measurements, fixed capacity ``K``: a table ``(K, F)`` with named columns.
+
+    ``names`` (static) names the ``F`` columns (e.g. ``"area"``,
+    ``"centroid_row"``); ``label`` gives the label id of each row (row ``k``
+    describes label ``k + 1``); ``valid`` marks labels that exist; ``truncated``
+    says labels beyond the capacity were not measured. Invalid rows hold NaN.
+    ``props["area"]`` returns a column.
+    """
+
+    table: Float[Array, "*batch K F"]
+    label: Int[Array, "*batch K"]
+    valid: Bool[Array, "*batch K"]
+    truncated: Bool[Array, "*batch"]
+    names: tuple[str, ...] = eqx.field(static=True, default=())
+    _float_fields = ()
+
+    def __init__(self, table: Any, names: tuple[str, ...], valid: Any, label: Any = None, truncated: Any = False):
+        self.table = _as_array(table, sort="RegionProps", field="table", kind="float", min_ndim=2)
+        self.names = tuple(str(n) for n in names)
+        if len(self.names) != self.table.shape[-1]:
+            raise ValueError(
+                f"RegionProps(names=...): {len(self.names)} names for {self.table.shape[-1]} columns"
+            )
+        if len(set(self.names)) != len(self.names):
+            raise ValueError("RegionProps(names=...): column names must be unique")
+        self.valid = _as_array(valid, sort="RegionProps", field="valid", kind="bool", min_ndim=1)
+        if self.valid.shape != self.table.shape[:-1]:
+            raise ValueError(f"RegionProps(valid=...): shape {self.valid.shape} does not match table rows "
+                             f"{self.table.shape[:-1]}")
+        if label is None:
+            label = jnp.broadcast_to(jnp.arange(1, self.table.shape[-2] + 1, dtype=jnp.int32), self.valid.shape)
+        self.label = _as_array(label, sort="RegionProps", field="label", kind="int", min_ndim=1)
+        self.truncated = jnp.asarray(truncated, dtype=bool)
+
+    def __getitem__(self, name: str) -> Array:
+        if name not in self.names:
+            raise KeyError(f"RegionProps: no column {name!r}; columns: {', '.join(self.names)}")
+        return self.table[..., self.names.index(name)]
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.table.shape[:-2])
+
+
+class Fit(Sort):
+    """Result record of a geometric fit: named parameters plus diagnostics.
+
+    ``kind`` (static) names the model (``"line"``, ``"circle"``, ``"ellipse"``,
+    ...), ``names`` (static) its parameters, in units stated by the op.
+    ``rms`` is the residual RMS, ``iterations`` the solver steps, ``converged``
+    False (with NaN parameters) when the fit failed or was degenerate, and
+    ``n_used`` the number of points that entered the final fit.
+    """
+
+    params: Float[Array, "*batch P"]
+    rms: Float[Array, "*batch"]
+    iterations: Int[Array, "*batch"]
+    converged: Bool[Array, "*batch"]
+    n_used: Int[Array, "*batch"]
+    kind: str = eqx.field(static=True, default="")
+    names: tuple[str, ...] = eqx.field(static=True, default=())
+    _float_fields = ()
+
+    def __init__(self, params: Any, names: tuple[str, ...], kind: str, rms: Any, converged: Any,
+                 iterations: Any = 0, n_used: Any = 0):
+        self.params = _as_array(params, sort="Fit", field="params", kind="float", min_ndim=1)
+        self.names = tuple(str(n) for n in names)
+        if len(self.names) != self.params.shape[-1]:
+            raise ValueError(f"Fit(names=...): {len(self.names)} names for {self.params.shape[-1]} parameters")
+        self.kind = str(kind)
+        self.rms = jnp.asarray(rms, dtype=self.params.dtype)
+        self.converged = jnp.asarray(converged, dtype=bool)
+        self.iterations = jnp.asarray(iterations, dtype=jnp.int32)
+        self.n_used = jnp.asarray(n_used, dtype=jnp.int32)
+
+    def __getitem__(self, name: str) -> Array:
+        if name not in self.names:
+            raise KeyError(f"Fit: no parameter {name!r}; parameters: {', '.join(self.names)}")
+        return self.params[..., self.names.index(name)]
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.params.shape[:-1])
+
+
+class Edges1D(Sort):
+    """Edges found along a 1-D measure profile (calipers), fixed capacity ``K``.
+
+    ``pos`` is the sub-pixel position along the profile in pixels from its start;
+    ``row``/``col`` the image position; ``amplitude`` the signed derivative at the
+    edge (positive = dark-to-light along the profile); ``width`` the distance to
+    the paired edge for edge pairs (0 for single edges from ``measure_pos`` and for
+    unused slots: read ``valid`` and the op that made it). Valid edges come first
+    in profile order; ``truncated`` flags lost edges.
+    """
+
+    pos: Float[Array, "*batch K"]
+    row: Float[Array, "*batch K"]
+    col: Float[Array, "*batch K"]
+    amplitude: Float[Array, "*batch K"]
+    width: Float[Array, "*batch K"]
+    valid: Bool[Array, "*batch K"]
+    truncated: Bool[Array, "*batch"]
+    _float_fields = ()
+
+    def __init__(self, pos: Any, row: Any, col: Any, amplitude: Any, valid: Any, width: Any = None,
+                 truncated: Any = False):
+        self.pos = _as_array(pos, sort="Edges1D", field="pos", kind="float", min_ndim=1)
+        shape, dt = self.pos.shape, self.pos.dtype
+        self.row = _as_array(row, sort="Edges1D", field="row", kind="float", min_ndim=1)
+        self.col = _as_array(col, sort="Edges1D", field="col", kind="float", min_ndim=1)
+        self.amplitude = _as_array(amplitude, sort="Edges1D", field="amplitude", kind="float", min_ndim=1)
+        self.width = _as_array(jnp.zeros(shape, dt) if width is None else width, sort="Edges1D",
+                               field="width", kind="float", min_ndim=1)
+        self.valid = _as_array(valid, sort="Edges1D", field="valid", kind="bool", min_ndim=1)
+        for name in ("row", "col", "amplitude", "width", "valid"):
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"Edges1D({name}=...): shape {getattr(self, name).shape} does not match pos {shape}")
+        self.truncated = jnp.asarray(truncated, dtype=bool)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.pos.shape[:-1])
