@@ -20,8 +20,9 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 # subpackages / modules reachable as attributes
-_SUBMODULES = ("data", "fit", "ops", "render", "io", "io3d", "io_splat", "synth", "evolve", "types",
-               "registry", "pipeline")
+_SUBMODULES = ("data", "fit", "ops", "render", "io", "synth", "evolve", "types", "registry", "pipeline")
+# former module paths, still reachable as attributes (importing them warns: DeprecationWarning)
+_DEPRECATED_SUBMODULES = ("io3d", "io_splat")
 
 # public name -> module that defines it
 _NAMES = {
@@ -40,7 +41,7 @@ __all__ = sorted(_NAMES) + list(_SUBMODULES)
 def __getattr__(name: str) -> Any:
     if name in _NAMES:
         value = getattr(_importlib.import_module(_NAMES[name], __name__), name)
-    elif name in _SUBMODULES:
+    elif name in _SUBMODULES or name in _DEPRECATED_SUBMODULES:
         value = _importlib.import_module(f".{name}", __name__)
     else:
         raise AttributeError(f"module 'fsjax' has no attribute {name!r}")

@@ -45,7 +45,7 @@ API_DIR = "docs/api"
 API_INDEX = "docs/api/INDEX.md"
 #: packages and modules whose public functions and classes get an API page (the
 #: library beyond registered ops: cameras, renderers, fits, evolution, 3-D I/O)
-API_ROOTS = ("fsjax.render", "fsjax.fit", "fsjax.evolve", "fsjax.io3d", "fsjax.io_splat", "fsjax.data")
+API_ROOTS = ("fsjax.render", "fsjax.fit", "fsjax.evolve", "fsjax.io", "fsjax.data")
 INDEX = "docs/ops/INDEX.md"
 CATALOG = "docs/OP_CATALOG.md"
 CONNECT_CAP = 30

@@ -98,7 +98,7 @@ def stage_main(args):
                        f"--views {args.views}")
     print("main", res, flush=True)
     _save(f"main_{args.size}", res)
-    from fsjax.io_splat import write_splat
+    from fsjax.io import write_splat
 
     write_splat(f"/tmp/splat_main_{args.size}.splat", r.gaussians)
     _save_images(data, r.gaussians, args.size)
@@ -244,7 +244,7 @@ def write_docs():
              "* `fsjax.fit.train_splats`: L1 + 0.2 (1 - SSIM), `optimistix.OptaxMinimiser` (Adam per parameter",
              "  group) stepped through optimistix's `init`/`step`, split/clone by screen-space gradient and",
              "  opacity pruning under a fixed maximum count, tqdm bar, deterministic under a key.",
-             "* `fsjax.fit.select_frames_by_rotation`, `fsjax.io_splat` (3DGS PLY and 32-byte `.splat`).",
+             "* `fsjax.fit.select_frames_by_rotation`, `fsjax.io` (3DGS PLY and 32-byte `.splat`: `write_ply_gaussians`, `write_splat`).",
              "", "Data: Spot (Crane et al.) rendered by fsjax's own mesh rasteriser with vertex colours from the",
              "normals times a band pattern, cameras on a spiral, every 6th view held out. Initialisation:",
              "surface samples of the mesh with noise (standing in for an SfM cloud).", ""]

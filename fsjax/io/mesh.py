@@ -52,7 +52,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from .types import Mesh, Points
+from ..types import Mesh, Points
 
 __all__ = ["read_points", "write_points", "read_mesh", "write_mesh"]
 
@@ -478,7 +478,7 @@ def read_points(path: str | os.PathLike, *, format: str | None = None) -> Points
 
     Example:
       >>> import tempfile, os, numpy as np
-      >>> from fsjax.io3d import read_points, write_points
+      >>> from fsjax.io import read_points, write_points
       >>> from fsjax import Points
       >>> p = Points(np.array([[0.0, 1.0, 2.0], [3.0, 4.0, 5.5]]))
       >>> path = os.path.join(tempfile.mkdtemp(), "two.pcd")
@@ -532,7 +532,7 @@ def write_points(path: str | os.PathLike, points: Points, *, format: str | None 
 
     Example:
       >>> import tempfile, os, numpy as np
-      >>> from fsjax.io3d import read_points, write_points
+      >>> from fsjax.io import read_points, write_points
       >>> from fsjax import Points
       >>> p = Points(np.array([[0.5, 1.0, 2.0], [9.0, 9.0, 9.0]]), valid=np.array([True, False]))
       >>> path = os.path.join(tempfile.mkdtemp(), "one.ply")
@@ -583,7 +583,7 @@ def read_mesh(path: str | os.PathLike, *, format: str | None = None) -> Mesh:
 
     Example:
       >>> import tempfile, os, numpy as np
-      >>> from fsjax.io3d import read_mesh, write_mesh
+      >>> from fsjax.io import read_mesh, write_mesh
       >>> from fsjax import Mesh
       >>> m = Mesh(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
       >>> path = os.path.join(tempfile.mkdtemp(), "tri.obj")
@@ -622,7 +622,7 @@ def write_mesh(path: str | os.PathLike, mesh: Mesh, *, format: str | None = None
 
     Example:
       >>> import tempfile, os, numpy as np
-      >>> from fsjax.io3d import read_mesh, write_mesh
+      >>> from fsjax.io import read_mesh, write_mesh
       >>> from fsjax import Mesh
       >>> m = Mesh(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]),
       ...          np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))

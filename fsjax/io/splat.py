@@ -35,8 +35,8 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
-from .render.splat import SH_C0
-from .types import Gaussians
+from ..render.splat import SH_C0
+from ..types import Gaussians
 
 __all__ = ["write_ply_gaussians", "read_ply_gaussians", "write_splat", "read_splat", "splat_bytes",
            "SPLAT_DTYPE"]
@@ -67,7 +67,7 @@ def write_ply_gaussians(path: str | os.PathLike, gaussians: Gaussians) -> int:
         >>> g = fsjax.Gaussians(jnp.zeros((2, 3)), jnp.zeros((2, 3)), jnp.asarray([[1.0, 0, 0, 0]] * 2),
         ...                     jnp.zeros(2), jnp.zeros((2, 4, 3)))
         >>> p = os.path.join(tempfile.mkdtemp(), "g.ply")
-        >>> fsjax.io_splat.write_ply_gaussians(p, g), fsjax.io_splat.read_ply_gaussians(p).colors.shape
+        >>> fsjax.io.write_ply_gaussians(p, g), fsjax.io.read_ply_gaussians(p).colors.shape
         (2, (2, 4, 3))
     """
     from plyfile import PlyData, PlyElement
@@ -143,7 +143,7 @@ def write_splat(path: str | os.PathLike, gaussians: Gaussians) -> int:
         >>> g = fsjax.Gaussians(jnp.zeros((3, 3)), jnp.zeros((3, 3)), jnp.asarray([[1.0, 0, 0, 0]] * 3),
         ...                     jnp.zeros(3), jnp.zeros((3, 1, 3)))
         >>> p = os.path.join(tempfile.mkdtemp(), "g.splat")
-        >>> fsjax.io_splat.write_splat(p, g), os.path.getsize(p)
+        >>> fsjax.io.write_splat(p, g), os.path.getsize(p)
         (3, 96)
     """
     data = splat_bytes(gaussians)

@@ -7,7 +7,7 @@ import pytest
 
 from fsjax import Mesh, Points
 from fsjax.data import mesh_arrays
-from fsjax.io3d import read_mesh, read_points, write_mesh, write_points
+from fsjax.io.mesh import read_mesh, read_points, write_mesh, write_points
 from fsjax.synth._pool import icosphere
 
 

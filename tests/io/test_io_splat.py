@@ -9,7 +9,7 @@ import pytest
 
 import fsjax
 from fsjax import Gaussians
-from fsjax import io_splat as IO
+from fsjax.io import splat as IO
 from fsjax.render.splat import SH_C0
 
 

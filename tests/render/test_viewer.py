@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import fsjax
-from fsjax.io_splat import splat_bytes
+from fsjax.io import splat_bytes
 from fsjax.render import intrinsics_from_fov, look_at
 from fsjax.render.viewer import viewer_page
 
