@@ -39,7 +39,7 @@ jax.config.update("jax_enable_x64", True)
 # jaxlib 0.10's batched LAPACK kernels (eigh, LU, QR, ...) split their batch onto XLA:CPU's
 # intra-op pool and block on it; when as many of them run at once as the pool has threads (2
 # here), no thread is left to do the work. select_model, the 3-D primitive fits and
-# photometric_stereo now use no LAPACK (fsjax/fit/_smalllinalg.py) and the 200-per-model test
+# photometric_stereo now use no LAPACK (fsjax/_linalg.py) and the 200-per-model test
 # runs again. Synchronous CPU dispatch does not prevent the deadlock (measured); it is kept
 # because every full run since has used it. A hang elsewhere is ended by pytest-timeout's
 # thread method (pyproject: timeout_method = "thread") with every stack dumped, failing the

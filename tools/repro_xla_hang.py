@@ -17,7 +17,7 @@ run at once + a small pool (few cores make it more likely). Not triggers: async 
 (synchronous dispatch hangs too), ``--xla_backend_optimization_level=0`` (the ``default``
 configuration can hang as well), and ``--xla_cpu_multi_thread_eigen=false`` does not
 prevent it. The library's workaround: :func:`fsjax.fit.select_model` and the 3-D primitive
-fits use no LAPACK at all (``fsjax/fit/_smalllinalg.py``).
+fits use no LAPACK at all (``fsjax/_linalg.py``).
 
 This script runs the workload N times, each in a fresh subprocess, and reports how many
 runs hung (see below). On a hang it can dump the native stacks of every thread with gdb

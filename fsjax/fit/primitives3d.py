@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ._smalllinalg import SmallQR, eigh_small, solve_small, solve_spd_eig
+from .._linalg import SmallQR, eigh_small, solve_small, solve_spd_eig
 
 __all__ = [
     "Fit3D", "ModelSelection", "MODEL_PARAMS", "fit_plane", "fit_line", "fit_sphere", "fit_circle3d",

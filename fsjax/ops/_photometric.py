@@ -143,7 +143,7 @@ def _det(a):
     The per-pixel solvers use no LAPACK: jaxlib 0.10's batched CPU LAPACK kernels (``det``
     and ``solve`` via LU, ``eigvalsh``) can deadlock XLA:CPU's thread pool when two run at
     once (tools/repro_xla_hang.py; this op hung that way), so the 2x2 / 3x3 algebra is
-    written out (``fsjax/fit/_smalllinalg.py``).
+    written out (``fsjax/_linalg.py``).
     """
     if a.shape[-1] == 2:
         return a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
@@ -154,7 +154,7 @@ def _det(a):
 
 def _wls(L, meas, w):
     """Weighted least squares ``argmin sum w (L b - meas)^2`` with a rank test (3 x 3 normal equations)."""
-    from ..fit._smalllinalg import eigh_small, solve_small  # no LAPACK: see _det below
+    from .._linalg import eigh_small, solve_small  # no LAPACK: see _det below
 
     A = L.T @ (w[:, None] * L)
     y = L.T @ (w * meas)
@@ -175,7 +175,7 @@ def _two_light_qp(L, meas, lit, thr):
     dt = L.dtype
     idx = jnp.argsort(~lit, stable=True)[:2]
     L2, I2 = L[idx], meas[idx]
-    from ..fit._smalllinalg import solve_small
+    from .._linalg import solve_small
 
     G = L2 @ L2.T
     detG = _det(G)
@@ -206,7 +206,7 @@ def _lmeds(L, meas, triplets, h):
     """Least median of squares over all light triplets: exact 3 x 3 solves, criterion = h-th smallest r^2."""
     Lt = L[triplets]  # (T, 3, 3)
     It = meas[triplets]  # (T, 3)
-    from ..fit._smalllinalg import solve_small
+    from .._linalg import solve_small
 
     det = _det(Lt)
     ok = jnp.abs(det) > 1e-6

@@ -189,5 +189,5 @@ def test_model_selection_bic_picks_truth():
 @pytest.mark.slow
 def test_model_selection_bic_200_per_model():
     # Once skipped: it hung in XLA:CPU (a deadlock of jaxlib's batched LAPACK kernels in the intra-op
-    # pool, tools/repro_xla_hang.py); select_model no longer uses LAPACK (fsjax/fit/_smalllinalg.py).
+    # pool, tools/repro_xla_hang.py); select_model no longer uses LAPACK (fsjax/_linalg.py).
     _check(200)

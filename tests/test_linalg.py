@@ -1,4 +1,4 @@
-"""Small dense linear algebra without LAPACK (fsjax/fit/_smalllinalg.py) against numpy's LAPACK,
+"""Small dense linear algebra without LAPACK (fsjax/_linalg.py) against numpy's LAPACK,
 in float64 and float32, including repeated eigenvalues, singular-adjacent and non-square cases."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import lineax as lx
 import numpy as np
 import pytest
 
-from fsjax.fit._smalllinalg import SmallQR, eigh_small, lstsq_small, solve_small, solve_spd_eig
+from fsjax._linalg import SmallQR, eigh_small, lstsq_small, solve_small, solve_spd_eig
 
 
 def _sym(rng, b, n):

@@ -11,7 +11,8 @@ thread is left to run: the process hangs with all threads idle
 primitive fits and :func:`fsjax.fit.select_model` work on 3x3 to 7x7 matrices,
 where a few Jacobi rotations or an unrolled elimination cost less than the
 custom call; writing them here keeps those fits free of LAPACK, so they cannot
-hang under ``vmap`` whatever jaxlib does.
+hang under ``vmap`` whatever jaxlib does. It sits in the bottom layer (imports nothing of
+fsjax) because ops (photometric stereo) and fits both use it.
 
 All functions take leading batch dimensions (``(..., n, n)``), are
 differentiable, and have a static size ``n`` (the matrices are tiny: ``n <= 8``
