@@ -13,6 +13,9 @@
 ``fsjax tour --out DIR [--quick] [--sections a,b] [--list]``
     the library's main job: a scored tour of what fsjax measures; writes
     ``DIR/report.md`` and figures; a running section prints a progress line every 15 s.
+``fsjax fuzz --chains N --length L --seed S --out DIR`` / ``fsjax fuzz --replay FILE``
+    the chain fuzzer (:mod:`fsjax.fuzz`): random typed chains run eager, under jit, vmap
+    and grad; failures classified and minimised into ``DIR/report.md`` and JSON lines.
 
 ``tour``, ``run`` and ``evolve`` keep compiled programs in JAX's persistent compilation
 cache (``fsjax.enable_compile_cache``: the user's cache directory, ``FSJAX_CACHE_DIR``
@@ -238,6 +241,12 @@ def _cmd_tour(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fuzz(args) -> int:
+    from .fuzz._report import cli_main
+
+    return cli_main(args)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fsjax", description="Typed, jit-compiled vision operators in JAX.")
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -277,6 +286,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sections", help="comma-separated section names (default: all; see --list)")
     p.add_argument("--list", action="store_true", help="list the section names and exit")
     p.set_defaults(func=_cmd_tour)
+
+    p = sub.add_parser("fuzz", help="chain fuzzer: random typed chains run eager/jit/vmap/grad; DIR/report.md")
+    p.add_argument("--chains", type=int, default=200)
+    p.add_argument("--length", type=int, default=6, help="maximum chain length")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--minutes", type=float, help="stop drawing new chains after this many minutes")
+    p.add_argument("--no-grad", action="store_true", help="skip the grad way")
+    p.add_argument("--strict", action="store_true", help="exit 1 on SUSPECT/TYPEMISS/MISMATCH/SILENT_OVERFLOW/GRADNAN")
+    p.add_argument("--replay", help="JSON-lines file of chains or failure records to run again")
+    p.add_argument("--out", help="output directory (report.md, failures.jsonl, minimised.jsonl)")
+    p.set_defaults(func=_cmd_fuzz)
 
     args = parser.parse_args(argv)
     if args.cmd in ("tour", "run", "evolve"):

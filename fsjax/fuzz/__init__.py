@@ -1,0 +1,61 @@
+"""The chain fuzzer: random typed pipelines over the registry, run four ways, nothing silent.
+
+Users build chains of ops; each op is tested alone elsewhere. The fuzzer draws random
+chains that are type-correct by construction (the registry's sort graph; the sorts
+reachable from the input pool are a fixed point), with random knobs and, for boolean
+named parameters, random legal values, on a pool of inputs of several sizes and dtypes
+(the standard scene of :func:`fsjax.synth.standard_input`, a real photograph from
+``skimage.data``, a constant image, 1 x 1, 3 x 5, very large values, a single bright
+pixel; an all-NaN image must be refused at the door). Each chain runs eagerly, under
+``jit``, under ``vmap`` over a batch of two, and, when every stage is declared
+differentiable, under ``grad`` of a scalar of its output. Every failure lands in exactly
+one class with a signature that groups duplicates:
+
+``CONTRACT``  a declared sort, batch shape or dtype not kept (or an all-NaN input accepted)
+``SUSPECT``   a raw exception that is not fsjax's own clear error (``IndexError``, an XLA
+              error, a tracer-conversion error)
+``TYPEMISS``  the pipeline checker refused a type-correct chain, or an op refused a sort
+              the checker accepted
+``NONFINITE`` NaN/inf from finite input not explained by a flag (``converged``/``found``
+              False, ``truncated`` True, a ``valid`` mask, a NaN ``Feature`` = "could not measure")
+``MISMATCH``  eager, ``jit`` and ``vmap`` disagree beyond the stated tolerance
+``GRADNAN``   finite forward, NaN gradient
+``RECOMPILE`` a second call with the same shapes compiles again (eager op-by-op, or the
+              compiled chain)
+``GROWTH``    output more than 64 x the input's bytes (+1 MiB)
+``SILENT_OVERFLOW`` a truncated input whose flag is not passed on, or, for an op with a
+              ``capacity`` (drawn small now and then), fewer items kept than the same call at
+              the default capacity finds, with ``truncated`` unset
+
+An op's clear refusal (a ``ValueError``/``TypeError`` whose message names the op) is not a
+failure: the chain is cut there, counted as refused, and its prefix still runs the other ways.
+
+Usage::
+
+    run = fsjax.fuzz.fuzz(200, max_length=6, seed=0)
+    fsjax.fuzz.write_report(run, "fuzz-out")       # report.md, failures.jsonl, minimised.jsonl
+    fsjax.fuzz.replay("fuzz-out/minimised.jsonl")
+
+or ``fsjax fuzz --chains 200 --length 6 --seed 0 --out DIR`` and
+``fsjax fuzz --replay DIR/minimised.jsonl``.
+"""
+
+from ._gen import Chain as Chain
+from ._gen import SortGraph as SortGraph
+from ._gen import Stage as Stage
+from ._gen import build_input as build_input
+from ._gen import generate_chain as generate_chain
+from ._report import BLOCKING as BLOCKING
+from ._report import FuzzRun as FuzzRun
+from ._report import fuzz as fuzz
+from ._report import minimise as minimise
+from ._report import pool_sorts as pool_sorts
+from ._report import replay as replay
+from ._report import temporary_ops as temporary_ops
+from ._report import write_report as write_report
+from ._run import CLASSES as CLASSES
+from ._run import Outcome as Outcome
+from ._run import Runner as Runner
+
+__all__ = ["BLOCKING", "CLASSES", "Chain", "FuzzRun", "Outcome", "Runner", "SortGraph", "Stage", "build_input",
+           "fuzz", "generate_chain", "minimise", "pool_sorts", "replay", "temporary_ops", "write_report"]

@@ -1,0 +1,342 @@
+"""Chain generation: the sort graph, the input pool, random type-correct chains.
+
+A chain is plain data (JSON-able), so a failure can be written as one line and replayed::
+
+    {"input": {"sort": "Image", "kind": "scene", "size": [16, 16], "dtype": "float64", "variant": 0},
+     "stages": [{"op": "gaussian", "a": 0.31, "b": null, "params": {}, "slot": 0}, ...]}
+
+``slot`` is the position of the chain's running value among the inputs of a multi-input op;
+the other inputs come from the pool (built at the running value's raster size, next variant).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import random
+from collections.abc import Sequence
+from typing import Any
+
+__all__ = ["Chain", "Stage", "SortGraph", "IMAGE_KINDS", "build_input", "generate_chain"]
+
+# Image inputs of the pool: kind -> (weight, default size). Sizes are few on purpose: every
+# new shape compiles every primitive again.
+IMAGE_KINDS: dict[str, tuple[float, tuple[int, int] | None]] = {
+    "scene": (4.0, None),        # the standard scene (fsjax.synth.standard_input), size drawn from SIZES
+    "photo": (1.5, (32, 32)),    # skimage.data.camera, block-averaged (a real photograph)
+    "constant": (1.0, (16, 16)),
+    "spike": (1.0, (16, 16)),    # a single bright pixel on black
+    "large": (1.0, (16, 16)),    # the scene times 1e6 (very large values)
+    "tiny": (0.7, (1, 1)),
+    "odd": (1.0, (3, 5)),
+    "nan": (0.3, (8, 8)),        # all-NaN: must be refused at the door
+}
+SIZES: tuple[tuple[int, int], ...] = ((16, 16), (15, 17), (24, 32))
+DTYPES: tuple[str, ...] = ("float64", "float32")
+RASTER_KINDS = ("scene", "constant", "empty")  # other raster sorts (Color, Region, Labels, ...)
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage:
+    op: str
+    a: float | None = None
+    b: float | None = None
+    params: tuple[tuple[str, Any], ...] = ()
+    slot: int = 0
+
+    def to_json(self) -> dict:
+        return {"op": self.op, "a": self.a, "b": self.b, "params": dict(self.params), "slot": self.slot}
+
+    @classmethod
+    def from_json(cls, d: dict) -> Stage:
+        return cls(d["op"], d.get("a"), d.get("b"), tuple(sorted((d.get("params") or {}).items())),
+                   int(d.get("slot", 0)))
+
+
+@dataclasses.dataclass(frozen=True)
+class Chain:
+    """A fuzz chain: an input description and stages (plain data)."""
+
+    input: tuple[tuple[str, Any], ...]
+    stages: tuple[Stage, ...]
+
+    @property
+    def inp(self) -> dict:
+        return dict(self.input)
+
+    def to_json(self) -> dict:
+        return {"input": self.inp, "stages": [s.to_json() for s in self.stages]}
+
+    @classmethod
+    def from_json(cls, d: dict) -> Chain:
+        inp = dict(d["input"])
+        if "size" in inp:
+            inp["size"] = tuple(inp["size"])
+        return cls(tuple(sorted(inp.items())), tuple(Stage.from_json(s) for s in d["stages"]))
+
+    def replace(self, **kw) -> Chain:
+        return dataclasses.replace(self, **kw)
+
+    def with_input(self, **kw) -> Chain:
+        inp = self.inp
+        inp.update(kw)
+        return self.replace(input=tuple(sorted(inp.items())))
+
+    def describe(self) -> str:
+        i = self.inp
+        size = "x".join(map(str, i["size"]))
+        head = f"{i['sort']}[{i['kind']} {size} {i['dtype']}]"
+        parts = []
+        for s in self.stages:
+            k = ",".join(f"{v:.2f}" for v in (s.a, s.b) if v is not None)
+            p = ",".join(f"{n}={v}" for n, v in s.params)
+            parts.append(s.op + (f"@{k}" if k else "") + (f":{p}" if p else "") + (f"#{s.slot}" if s.slot else ""))
+        return " -> ".join([head, *parts])
+
+
+# ---------------------------------------------------------------------------
+# Input pool
+# ---------------------------------------------------------------------------
+
+
+def _photo(variant: int, size: tuple[int, int]):
+    import numpy as np
+    from skimage import data as skdata
+
+    img = skdata.camera().astype(np.float64) / 255.0  # 512 x 512
+    h, w = size
+    img = img[: (512 // h) * h, : (512 // w) * w].reshape(h, 512 // h, w, 512 // w).mean(axis=(1, 3))
+    return img[:, ::-1].copy() if variant % 2 else img
+
+
+def _image_array(kind: str, variant: int, size: tuple[int, int]):
+    import numpy as np
+
+    from fsjax.synth import standard_scene
+
+    h, w = size
+    if kind in ("scene", "odd"):
+        return standard_scene(variant % 2, size)[0]
+    if kind == "photo":
+        return _photo(variant, size)
+    if kind == "constant":
+        return np.full(size, 0.5 if variant % 2 == 0 else 0.3)
+    if kind == "tiny":
+        return np.full(size, 0.5 if variant % 2 == 0 else 0.2)
+    if kind == "spike":
+        a = np.zeros(size)
+        a[(h // 3 + variant) % h, (w // 2 + 2 * variant) % w] = 1.0
+        return a
+    if kind == "large":
+        return standard_scene(variant % 2, size)[0] * 1e6
+    if kind == "nan":
+        return np.full(size, np.nan)
+    raise ValueError(f"fuzz: unknown image kind {kind!r}")
+
+
+def _cast(x, dtype: str):
+    import jax
+    import jax.numpy as jnp
+
+    def c(v):
+        if hasattr(v, "dtype") and jnp.issubdtype(v.dtype, jnp.floating) and v.dtype != dtype:
+            return jnp.asarray(v, dtype=dtype)
+        return v
+
+    return jax.tree_util.tree_map(c, x)
+
+
+def build_input(sort: type, kind: str, size: tuple[int, int], dtype: str, variant: int = 0):
+    """One pool input: ``sort`` of ``kind`` at ``size`` (raster sorts) in ``dtype``."""
+    import jax.numpy as jnp
+
+    from fsjax.synth import standard_input
+    from fsjax.types import Image, Region
+
+    size = tuple(size)
+    if sort is Image:
+        return Image(jnp.asarray(_image_array(kind, variant, size), dtype=dtype))
+    if kind == "empty" and sort is Region:
+        import numpy as np
+
+        return Region(jnp.asarray(np.zeros(size, bool)))
+    x = standard_input(sort, variant % 2, size=size)
+    if kind == "constant":
+        import jax
+
+        def flat(v):
+            if hasattr(v, "dtype") and jnp.issubdtype(v.dtype, jnp.floating) and v.ndim >= 2:
+                return jnp.full_like(v, 0.5 if variant % 2 == 0 else 0.3)
+            return v
+
+        x = jax.tree_util.tree_map(flat, x)
+    return _cast(x, dtype)
+
+
+def raster_size(x) -> tuple[int, int] | None:
+    """``(H, W)`` of a raster sort (by its main array), else ``None``."""
+    arr = getattr(x, "data", None)
+    if arr is None or getattr(arr, "ndim", 0) < 2:
+        return None
+    if arr.ndim >= 3 and arr.shape[-1] == 3 and type(x).__name__ in ("Color", "HSV", "Lab"):
+        return tuple(arr.shape[-3:-1])
+    return tuple(arr.shape[-2:])
+
+
+def float_dtype(x) -> str | None:
+    import jax
+    import jax.numpy as jnp
+
+    for v in jax.tree_util.tree_leaves(x):
+        if hasattr(v, "dtype") and jnp.issubdtype(v.dtype, jnp.floating):
+            return str(v.dtype)
+    return None
+
+
+def extra_input(sort: type, like, dtype: str, variant: int):
+    """A pool input of ``sort`` to fill another slot of a multi-input op fed with ``like``."""
+    size = raster_size(like) or SIZES[0]
+    return build_input(sort, "scene", size, dtype, variant)
+
+
+# ---------------------------------------------------------------------------
+# The sort graph
+# ---------------------------------------------------------------------------
+
+
+class SortGraph:
+    """Which ops can take which sorts, and which sorts are reachable from the pool.
+
+    ``pool``: sorts the pool can build. ``reachable``: the fixed point of
+    "a sort is reachable when the pool builds it or an op whose every input is
+    reachable (the chain slot) or pool-buildable (other slots) gives it".
+    """
+
+    def __init__(self, specs: Sequence[Any], pool: set[type]):
+        self.specs = {s.name: s for s in specs}
+        self.pool = set(pool)
+        reach = set(self.pool)
+        changed = True
+        while changed:
+            changed = False
+            for s in specs:
+                if s.gives in reach:
+                    continue
+                if any(self._slot_ok(s, i, reach) for i in range(len(s.takes))):
+                    reach.add(s.gives)
+                    changed = True
+        self.reachable = reach
+
+    def _slot_ok(self, spec, slot: int, reach: set[type]) -> bool:
+        if not any(issubclass(r, spec.takes[slot]) for r in reach):
+            return False
+        return all(any(issubclass(p, t) for p in self.pool) for j, t in enumerate(spec.takes) if j != slot)
+
+    def slots_for(self, spec, sort: type) -> list[int]:
+        """Slots of ``spec`` that can take the running value of ``sort`` (others from the pool)."""
+        out = []
+        for i, t in enumerate(spec.takes):
+            if issubclass(sort, t) and all(any(issubclass(p, u) for p in self.pool)
+                                           for j, u in enumerate(spec.takes) if j != i):
+                out.append(i)
+        return out
+
+    def runnable(self, spec) -> bool:
+        return any(self._slot_ok(spec, i, self.reachable) for i in range(len(spec.takes)))
+
+    def why_unreachable(self, spec) -> str:
+        missing = [t.__name__ for t in spec.takes if not any(issubclass(r, t) for r in self.reachable)]
+        if missing:
+            return f"no reachable input sort ({', '.join(missing)})"
+        nopool = [t.__name__ for t in spec.takes if not any(issubclass(p, t) for p in self.pool)]
+        return f"second input sort has no pool builder ({', '.join(nopool)})"
+
+
+def _draw_knob(rng: random.Random) -> float:
+    r = rng.random()
+    if r < 0.1:
+        return 0.0
+    if r < 0.2:
+        return 1.0
+    return round(rng.random(), 4)
+
+
+def _draw_params(spec, rng: random.Random) -> tuple[tuple[str, Any], ...]:
+    # named parameters that are not knob-mapped: the spec gives only their defaults; a bool's
+    # other value is legal by its type, so bools are flipped now and then, and a ``capacity``
+    # is set small now and then. Other types (str choices, tuples, other ints) stay at their
+    # default: their legal values are not in the spec.
+    out = []
+    for name, default in spec.params.items():
+        if name in spec.knobs:
+            continue
+        if isinstance(default, bool) and rng.random() < 0.2:
+            out.append((name, not default))
+        elif name == "capacity" and isinstance(default, int) and rng.random() < 0.3:
+            # fixed capacities: a small one makes overflow happen (it must be flagged)
+            out.append((name, rng.choice([1, 2, 4])))
+    return tuple(out)
+
+
+def _weighted(rng: random.Random, items: list, weights: list[float]):
+    total = sum(weights)
+    r = rng.random() * total
+    for it, w in zip(items, weights):
+        r -= w
+        if r <= 0:
+            return it
+    return items[-1]
+
+
+def _input_for(sort: type, rng: random.Random) -> dict:
+    from fsjax.types import Image
+
+    dtype = rng.choice(DTYPES)
+    if sort is Image:
+        kinds = list(IMAGE_KINDS)
+        kind = _weighted(rng, kinds, [IMAGE_KINDS[k][0] for k in kinds])
+        size = IMAGE_KINDS[kind][1] or rng.choice(SIZES)
+    else:
+        kind = _weighted(rng, list(RASTER_KINDS), [4.0, 1.0, 0.5])
+        size = rng.choice(SIZES)
+        if kind == "empty" and sort.__name__ != "Region":
+            kind = "scene"
+    return {"sort": sort.__name__, "kind": kind, "size": tuple(size), "dtype": dtype, "variant": 0}
+
+
+def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: dict[str, int]) -> Chain:
+    """One random type-correct chain; ops used less so far are drawn more often (``uses`` is updated)."""
+
+    def w(name: str) -> float:
+        return 1.0 / (1.0 + uses.get(name, 0)) ** 2
+
+    length = rng.randint(1, max_length)
+    # first stage: any op with a slot the pool feeds directly
+    firsts = [(s, i, p) for s in graph.specs.values() for p in sorted(graph.pool, key=lambda t: t.__name__)
+              for i in graph.slots_for(s, p)]
+    spec, slot, psort = _weighted(rng, firsts, [w(s.name) for s, _, _ in firsts])
+    inp = _input_for(psort, rng)
+    stages = []
+    cur = None
+    for k in range(length):
+        if k > 0:
+            cands = [(s, i) for s in graph.specs.values() for i in graph.slots_for(s, cur)]
+            if not cands:
+                break
+            spec, slot = _weighted(rng, cands, [w(s.name) for s, _ in cands])
+        knobs = [_draw_knob(rng) if rng.random() < 0.85 else None for _ in spec.knobs]
+        a = knobs[0] if knobs else None
+        b = knobs[1] if len(knobs) > 1 else None
+        stages.append(Stage(spec.name, a, b, _draw_params(spec, rng), slot))
+        uses[spec.name] = uses.get(spec.name, 0) + 1
+        cur = spec.gives
+    return Chain(tuple(sorted(inp.items())), tuple(stages))
+
+
+def knob_values(chain: Chain) -> list[tuple[float, float]]:
+    """The knob array of a chain (``None`` -> 0.5 placeholder, never read)."""
+    return [(0.5 if s.a is None else s.a, 0.5 if s.b is None else s.b) for s in chain.stages]
+
+
+def is_finite_number(v) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v)

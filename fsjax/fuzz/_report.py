@@ -1,0 +1,386 @@
+"""The fuzz loop, coverage, the minimiser, replay and the report."""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import dataclasses
+import json
+import os
+import random
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from ._gen import Chain, SortGraph, generate_chain
+from ._run import CLASSES, Outcome, Runner
+
+__all__ = ["FuzzRun", "fuzz", "minimise", "replay", "write_report", "temporary_ops", "pool_sorts",
+           "BLOCKING"]
+
+# classes a CI fuzz fails on (the issue's goal: 0 of each)
+BLOCKING = ("SUSPECT", "TYPEMISS", "MISMATCH", "SILENT_OVERFLOW", "GRADNAN")
+
+
+@contextlib.contextmanager
+def temporary_ops():
+    """Context manager: ops registered inside it are removed from the registry on exit.
+
+    For planted ops in tests (and experiments): ``with temporary_ops(): register(...)(fn)``.
+    """
+    from fsjax import registry
+
+    registry.list_ops()  # every family loaded before the snapshot
+    saved = dict(registry._REGISTRY)
+    try:
+        yield
+    finally:
+        registry._REGISTRY.clear()
+        registry._REGISTRY.update(saved)
+
+
+def pool_sorts(specs: Sequence[Any]) -> set[type]:
+    """Sorts among the ops' inputs that :func:`fsjax.synth.standard_input` can build."""
+    from fsjax.synth import standard_input
+
+    out = set()
+    for t in {t for s in specs for t in s.takes}:
+        try:
+            standard_input(t, 0)
+        except KeyError:
+            continue
+        out.add(t)
+    return out
+
+
+@dataclasses.dataclass
+class FuzzRun:
+    """Everything a fuzz run found: per-chain outcomes, signatures, coverage, timing."""
+
+    seed: int
+    max_length: int
+    specs: dict[str, Any]
+    graph: SortGraph
+    results: list[tuple[Chain, Outcome]] = dataclasses.field(default_factory=list)
+    minimised: dict[str, Chain] = dataclasses.field(default_factory=dict)
+    seconds: float = 0.0
+    minimise_seconds: float = 0.0
+    stopped_early: str = ""
+
+    # -- figures ---------------------------------------------------------------
+    @property
+    def failures(self) -> list[tuple[Chain, Outcome]]:
+        return [(c, o) for c, o in self.results if o.status == "failed"]
+
+    def class_counts(self) -> dict[str, int]:
+        c = collections.Counter(o.cls for _, o in self.failures)
+        return {k: c.get(k, 0) for k in CLASSES}
+
+    def signatures(self) -> dict[str, list[tuple[Chain, Outcome]]]:
+        out: dict[str, list] = {}
+        for c, o in self.failures:
+            out.setdefault(o.signature, []).append((c, o))
+        return out
+
+    def blocking(self) -> dict[str, int]:
+        cc = self.class_counts()
+        return {k: cc[k] for k in BLOCKING if cc[k]}
+
+    def coverage(self) -> dict[str, dict]:
+        cov = {n: {"family": s.family, "drawn": 0, "executed": 0, "refused": 0, "failed": 0, "after_stop": 0,
+                   "refusals": collections.Counter(), "fail_classes": collections.Counter()}
+               for n, s in self.specs.items()}
+        for c, o in self.results:
+            ran = set(o.executed)
+            stop = len(o.executed)
+            for i, st in enumerate(c.stages):
+                d = cov[st.op]
+                d["drawn"] += 1
+                if i > stop or (i == stop and o.status == "ok"):
+                    d["after_stop"] += 1
+            for op in ran:
+                cov[op]["executed"] += 1
+            if o.refused:
+                cov[o.refused[0]]["refused"] += 1
+                cov[o.refused[0]]["refusals"][o.refused[1][:160]] += 1
+            if o.status == "failed" and o.op in cov:
+                cov[o.op]["failed"] += 1
+                cov[o.op]["fail_classes"][o.cls] += 1
+        return cov
+
+    def why_not_run(self, name: str, d: dict) -> str:
+        spec = self.specs[name]
+        if not self.graph.runnable(spec):
+            return self.graph.why_unreachable(spec)
+        if d["drawn"] == 0:
+            return "never drawn"
+        if d["refused"]:
+            msg, _ = d["refusals"].most_common(1)[0]
+            return f"always refused ({d['refused']}x): {msg}"
+        if d["failed"]:
+            return "failed every time: " + ", ".join(f"{k} {v}" for k, v in d["fail_classes"].items())
+        return "drawn only after an earlier stage stopped the chain"
+
+    def executed_fraction(self) -> float:
+        cov = self.coverage()
+        return sum(1 for d in cov.values() if d["executed"]) / max(1, len(cov))
+
+
+def _default_specs():
+    from fsjax.registry import list_ops
+
+    return list_ops()
+
+
+def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequence[Any] | None = None,
+         minimise_failures: bool = True, grad: bool = True, vmap: bool = True,
+         time_budget_s: float | None = None, progress: Callable[[str], None] | None = None,
+         max_minimise_trials: int = 12) -> FuzzRun:
+    """Generate and run ``n_chains`` random typed chains of length ``1..max_length``.
+
+    Args:
+      specs: the ops to draw from (default: the whole registry).
+      minimise_failures: shrink the first chain of every signature (:func:`minimise`).
+      time_budget_s: stop generating new chains after this many seconds (recorded).
+      progress: called with a one-line status now and then (e.g. ``print``).
+    """
+    specs = list(_default_specs() if specs is None else specs)
+    graph = SortGraph(specs, pool_sorts(specs))
+    runner = Runner(specs, grad=grad, vmap=vmap)
+    run = FuzzRun(seed, max_length, {s.name: s for s in specs}, graph)
+    rng = random.Random(seed)
+    uses: dict[str, int] = {}
+    t0 = time.perf_counter()
+    for k in range(n_chains):
+        if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
+            run.stopped_early = f"time budget {time_budget_s:.0f} s reached after {k} chains"
+            break
+        chain = generate_chain(graph, rng, max_length, uses)
+        run.results.append((chain, runner.run(chain)))
+        if progress and (k + 1) % 25 == 0:
+            cc = {c: n for c, n in run.class_counts().items() if n}
+            progress(f"fuzz: {k + 1}/{n_chains} chains, {time.perf_counter() - t0:.0f} s, "
+                     f"ops executed {100 * run.executed_fraction():.0f} %, failures {cc}")
+    run.seconds = time.perf_counter() - t0
+    if minimise_failures:
+        t1 = time.perf_counter()
+        for sig, items in run.signatures().items():
+            c, o = items[0]
+            run.minimised[sig] = minimise(runner, c, o, max_trials=max_minimise_trials)
+        run.minimise_seconds = time.perf_counter() - t1
+    return run
+
+
+# ---------------------------------------------------------------------------
+# minimiser
+# ---------------------------------------------------------------------------
+
+
+def _type_ok(runner: Runner, chain: Chain) -> bool:
+    cur = runner.sorts.get(chain.inp["sort"])
+    if cur is None or not chain.stages:
+        return False
+    for st in chain.stages:
+        spec = runner.specs.get(st.op)
+        if spec is None or st.slot >= len(spec.takes) or not issubclass(cur, spec.takes[st.slot]):
+            return False
+        cur = spec.gives
+    return True
+
+
+def minimise(runner: Runner, chain: Chain, outcome: Outcome, *, max_trials: int = 12) -> Chain:
+    """Shrink a failing chain to a shorter (simpler) one failing in the same class at the same op.
+
+    Tries, keeping each change that still fails the same way: cutting the stages after the
+    one blamed, dropping each earlier stage, default knobs and parameters, and simpler
+    inputs (the standard scene at 16 x 16, float64). At most ``max_trials`` runs.
+    """
+    want = (outcome.cls, outcome.op)
+    trials = [0]
+
+    def same(c: Chain) -> bool:
+        if trials[0] >= max_trials or not _type_ok(runner, c):
+            return False
+        trials[0] += 1
+        o = runner.run(c)
+        return o.status == "failed" and (o.cls, o.op) == want
+
+    best = chain
+    if outcome.stage is not None and outcome.stage + 1 < len(best.stages):
+        c = best.replace(stages=best.stages[: outcome.stage + 1])
+        if same(c):
+            best = c
+    i = 0
+    while i < len(best.stages) and len(best.stages) > 1:
+        c = best.replace(stages=best.stages[:i] + best.stages[i + 1:])
+        if _type_ok(runner, c) and same(c):
+            best = c
+        else:
+            i += 1
+    plain = tuple(dataclasses.replace(s, a=None, b=None, params=()) for s in best.stages)
+    if plain != best.stages:
+        c = best.replace(stages=plain)
+        if same(c):
+            best = c
+    inp = best.inp
+    for kw in ({"dtype": "float64"}, {"kind": "scene", "size": (16, 16)}):
+        if all(inp.get(k) == v for k, v in kw.items()):
+            continue
+        c = best.with_input(**kw)
+        if same(c):
+            best = c
+            inp = best.inp
+    return best
+
+
+# ---------------------------------------------------------------------------
+# replay and report
+# ---------------------------------------------------------------------------
+
+
+def _record(chain: Chain, o: Outcome, minimised: Chain | None) -> dict:
+    d = {"class": o.cls, "signature": o.signature, "op": o.op, "stage": o.stage, "mode": o.mode,
+         "message": o.message, "chain": chain.to_json()}
+    if minimised is not None:
+        d["minimised"] = minimised.to_json()
+    return d
+
+
+def replay(path: str | os.PathLike, *, specs: Sequence[Any] | None = None,
+           out: Callable[[str], None] = print) -> list[Outcome]:
+    """Run every chain of a JSON-lines file (a failure record's ``minimised`` chain, else its
+    ``chain``, or a bare chain) and print its outcome."""
+    specs = list(_default_specs() if specs is None else specs)
+    runner = Runner(specs)
+    outs = []
+    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        d = json.loads(line)
+        cd = d.get("minimised") or d.get("chain") or d
+        chain = Chain.from_json(cd)
+        o = runner.run(chain)
+        outs.append(o)
+        what = o.signature if o.status == "failed" else (o.status + (f" ({o.refused[0]}: {o.refused[1]})"
+                                                                     if o.refused else ""))
+        out(f"{n}: {chain.describe()}\n   -> {what}")
+    return outs
+
+
+def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "") -> Path:
+    """Write ``DIR/report.md`` and ``DIR/failures.jsonl`` (one replayable record per failure)."""
+    import platform
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    sigs = run.signatures()
+    with open(out_dir / "failures.jsonl", "w") as fh:
+        for sig, items in sigs.items():
+            for k, (c, o) in enumerate(items):
+                fh.write(json.dumps(_record(c, o, run.minimised.get(sig) if k == 0 else None)) + "\n")
+    with open(out_dir / "minimised.jsonl", "w") as fh:
+        for sig, items in sigs.items():
+            c, o = items[0]
+            fh.write(json.dumps(_record(c, o, run.minimised.get(sig, c))) + "\n")
+    cov = run.coverage()
+    n = len(run.results)
+    status = collections.Counter(o.status for _, o in run.results)
+    lens = [len(c.stages) for c, _ in run.results]
+    stages_run = sum(len(o.executed) for _, o in run.results)
+    executed = sum(1 for d in cov.values() if d["executed"])
+    cc = run.class_counts()
+    L: list[str] = []
+    L.append("# Chain fuzz report\n")
+    if command:
+        L.append(f"Command: `{command}`\n")
+    L.append(f"Machine: {platform.machine()}, {os.cpu_count()} cores, load average "
+             f"{', '.join(f'{v:.2f}' for v in os.getloadavg())} at the end; python {platform.python_version()}.\n")
+    L.append("## Figures\n")
+    L.append("| figure | value |\n|---|---|")
+    L.append(f"| chains run | {n} (seed {run.seed}, length 1-{run.max_length}, mean {sum(lens) / max(1, n):.2f}) |")
+    L.append(f"| outcomes | {status.get('ok', 0)} ok, {status.get('refused', 0)} refused by a clear error, "
+             f"{status.get('failed', 0)} failed |")
+    L.append(f"| stages executed eagerly | {stages_run} |")
+    L.append(f"| wall time | {run.seconds:.0f} s running + {run.minimise_seconds:.0f} s minimising |")
+    L.append(f"| ops executed at least once | {executed} of {len(cov)} ({100 * executed / max(1, len(cov)):.1f} %) |")
+    if run.stopped_early:
+        L.append(f"| stopped early | {run.stopped_early} |")
+    L.append("")
+    L.append("## Failure classes\n")
+    L.append("| class | failures | signatures |\n|---|---|---|")
+    for k in CLASSES:
+        ns = sum(1 for s, it in sigs.items() if it[0][1].cls == k)
+        L.append(f"| {k} | {cc[k]} | {ns} |")
+    L.append("")
+    L.append("## Signatures and minimised reproducers\n")
+    if not sigs:
+        L.append("None.\n")
+    for sig, items in sorted(sigs.items(), key=lambda kv: (kv[1][0][1].cls, -len(kv[1]))):
+        c, o = items[0]
+        m = run.minimised.get(sig, c)
+        L.append(f"### {sig}\n")
+        L.append(f"{len(items)} chain(s). First: `{c.describe()}`\n")
+        L.append(f"Message: `{o.message[:300]}`\n")
+        L.append(f"Minimised ({len(m.stages)} stage(s)): `{m.describe()}`\n")
+        L.append("```json\n" + json.dumps(m.to_json()) + "\n```\n")
+    L.append("## Coverage per family\n")
+    L.append("| family | ops | executed | drawn (stages) | ran (stages) | refused | failed |\n|---|---|---|---|---|---|---|")
+    fams: dict[str, list] = {}
+    for name, d in cov.items():
+        fams.setdefault(d["family"], []).append(d)
+    for fam in sorted(fams):
+        ds = fams[fam]
+        L.append(f"| {fam} | {len(ds)} | {sum(1 for d in ds if d['executed'])} | {sum(d['drawn'] for d in ds)} | "
+                 f"{sum(d['executed'] for d in ds)} | {sum(d['refused'] for d in ds)} | "
+                 f"{sum(d['failed'] for d in ds)} |")
+    L.append("")
+    L.append("## Ops never executed, and why\n")
+    never = [(n_, d) for n_, d in sorted(cov.items()) if not d["executed"]]
+    if not never:
+        L.append("None: every op ran at least once.\n")
+    for n_, d in never:
+        L.append(f"* `{n_}` ({d['family']}): {run.why_not_run(n_, d)}")
+    L.append("")
+    L.append("## Coverage per op\n")
+    L.append("| op | family | drawn | executed | refused | failed |\n|---|---|---|---|---|---|")
+    for n_, d in sorted(cov.items(), key=lambda kv: (kv[1]["family"], kv[0])):
+        L.append(f"| {n_} | {d['family']} | {d['drawn']} | {d['executed']} | {d['refused']} | {d['failed']} |")
+    L.append("")
+    L.append("## Most frequent refusals (clear errors, not failures)\n")
+    ref = collections.Counter()
+    for _, o in run.results:
+        if o.refused:
+            ref[f"{o.refused[0]}: {o.refused[1][:200]}"] += 1
+    for msg, k in ref.most_common(15):
+        L.append(f"* {k} x `{msg}`")
+    L.append("")
+    path = out_dir / "report.md"
+    path.write_text("\n".join(L) + "\n")
+    return path
+
+
+def cli_main(args) -> int:
+    """``fsjax fuzz``: run (``--chains``) or replay (``--replay FILE``).
+
+    Turns on float64 (``jax_enable_x64``): the pool holds float64 and float32 inputs.
+    """
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    if args.replay:
+        outs = replay(args.replay)
+        bad = [o for o in outs if o.status == "failed"]
+        print(f"fsjax fuzz --replay: {len(outs)} chain(s), {len(bad)} still failing")
+        return 1 if bad else 0
+    if not args.out:
+        raise ValueError("fuzz: --out DIR is required (unless --replay FILE)")
+    cmd = "fsjax fuzz " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
+    run = fuzz(args.chains, args.length, args.seed, time_budget_s=args.minutes * 60 if args.minutes else None,
+               progress=lambda s: print(s, flush=True), grad=not args.no_grad)
+    path = write_report(run, args.out, command=cmd)
+    cc = {k: v for k, v in run.class_counts().items() if v}
+    print(f"fsjax fuzz: {len(run.results)} chains in {run.seconds:.0f} s; ops executed "
+          f"{100 * run.executed_fraction():.1f} %; failures {cc or 'none'}; report {path}")
+    return 1 if (args.strict and run.blocking()) else 0
