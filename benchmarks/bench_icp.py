@@ -9,7 +9,7 @@ Workloads (issue 4, item 8):
   point-to-plane (Open3D's target normals from 10 nearest neighbours are computed inside the
   timed call, as fsjax's are). Steady-state medians (``_harness.time_round_robin``), compile time
   apart, final rotation error.
-* **Global**: the 60 deg / 70 % overlap scene of ``fsjax.tour_registration.measure_global``
+* **Global**: the 60 deg / 70 % overlap scene of ``fsjax.tour.registration.measure_global``
   downsampled to ``--n-global`` points per crop; fsjax ``global_registration`` (FPFH + RANSAC,
   16,384 hypotheses, no ICP) vs Open3D FPFH + ``registration_ransac_based_on_feature_matching``
   (mutual filter, edge-length 0.9 and distance checkers, 100,000 iterations, confidence 0.999) on
@@ -39,7 +39,7 @@ from _harness import load_average, machine_info, time_round_robin  # noqa: E402
 from fsjax.fit import icp, rotation_error_deg, rotation_from_axis_angle  # noqa: E402
 from fsjax.fit.global_reg import _crop_pair, global_registration  # noqa: E402
 from fsjax.fit.icp import _bunny_points  # noqa: E402
-from fsjax.tour_registration import measure_basin  # noqa: E402
+from fsjax.tour.registration import measure_basin  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

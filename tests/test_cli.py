@@ -130,30 +130,17 @@ def test_help_and_cached_ops_listing_do_not_load_the_library(tmp_path):
                           timeout=300).stdout.split() == ["False", "read_image"]
 
 
-def test_tour_quick(tmp_path):
-    """``run_tour`` end to end (report and figures) on the 2-D sections.
+def test_tour_list_and_one_section_by_name(tmp_path, capsys):
+    """``fsjax tour --list`` prints every section name in report order; ``--sections`` runs only those
+    named (the tour itself is tested in tests/tour/)."""
+    from fsjax.cli import main
+    from fsjax.tour import section_names
 
-    The sections of the other tour modules each run in quick mode in their own test file
-    (``tests/test_<module>.py``); running them all again here doubled the suite's longest test.
-    """
-    from pathlib import Path
-
-    from fsjax import tour, tour_inspection
-
-    todo = list(tour.SECTIONS) + list(tour_inspection.SECTIONS)
-    secs = tour.run_tour(tmp_path, quick=True, sections=todo, log=lambda *a, **k: None)
-    report = (tmp_path / "report.md").read_text()
-    assert len(secs) == len(todo) >= 10
-    for s in secs:
-        print(f"{s.title}: fsjax {s.fsjax_figure} | null {s.null_figure}")
-        assert s.beats_null, s.title
-        assert s.title in report
-        if s.figure:
-            assert (tmp_path / s.figure).stat().st_size > 0
-    # every other tour module's sections are part of the full tour and have their own test file
-    tests_dir = Path(__file__).parent
-    names = [f.__name__ for f in tour.all_sections()]
-    assert names[: len(todo)] == [f.__name__ for f in todo]
-    for mod in tour._TOUR_MODULES:
-        if mod != "tour_inspection":
-            assert (tests_dir / f"test_{mod}.py").exists(), f"no quick-mode test for fsjax.{mod}"
+    assert main(["tour", "--list"]) == 0
+    assert capsys.readouterr().out.split() == section_names()
+    assert main(["tour", "--out", str(tmp_path), "--quick", "--sections", "lowpass_gain"]) == 0
+    out = capsys.readouterr().out
+    assert "[1/1] lowpass_gain" in out and "beats null: True" in out
+    assert "Frequency response of the Gaussian low-pass" in (tmp_path / "report.md").read_text()
+    assert main(["tour", "--out", str(tmp_path), "--sections", "no_such_section"]) == 2
+    assert "unknown section" in capsys.readouterr().err

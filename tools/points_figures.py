@@ -2,7 +2,7 @@
 
 Usage: ``python tools/points_figures.py`` (about a minute on 2 idle cores). The numbers on
 the page are the ones measured in this run; the tests assert the same quantities
-(``tests/fit/test_ransac3d.py``, ``tests/fit/test_primitives3d.py``, ``tests/test_tour_points.py``).
+(``tests/fit/test_ransac3d.py``, ``tests/fit/test_primitives3d.py``, ``tests/tour/test_tour_points.py``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ if str(ROOT) not in sys.path:  # `python tools/points_figures.py` from a checkou
 
 jax.config.update("jax_enable_x64", True)
 
-from fsjax import tour_points as T  # noqa: E402
+from fsjax.tour import points as T  # noqa: E402
 
 DOCS = ROOT / "docs"
 FIG = DOCS / "figures"

@@ -211,7 +211,7 @@ a light of given angular diameter, hit flags). Two measurement methods are score
 those channels, each beside its null. Everything below is produced by
 `python tools/render_figures.py` (float64); the same numbers, at smaller sizes, are asserted
 in `tests/render/test_sdf.py`, `tests/ops/test_photometric.py`,
-`tests/ops/test_structured_light.py` and `tests/test_tour_measure3d.py`.
+`tests/ops/test_structured_light.py` and `tests/tour/test_tour_measure3d.py`.
 
 ## The renderer's own check: a soft shadow against geometry
 

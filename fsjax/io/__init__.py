@@ -19,7 +19,14 @@ from __future__ import annotations
 
 from .image import read_image, write_image
 from .mesh import read_mesh, read_points, write_mesh, write_points
-from .splat import SPLAT_DTYPE, read_ply_gaussians, read_splat, splat_bytes, write_ply_gaussians, write_splat
+from .splat import (
+    SPLAT_DTYPE,
+    read_ply_gaussians,
+    read_splat,
+    splat_bytes,
+    write_ply_gaussians,
+    write_splat,
+)
 
 __all__ = ["read_image", "write_image",
            "read_points", "write_points", "read_mesh", "write_mesh",

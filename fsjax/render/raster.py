@@ -49,7 +49,7 @@ Precision: the visibility test works on ``P_j x P_k`` of camera-frame vertices, 
 about ``log10(|P| / |edge|)`` digits for small, distant faces; the returned depth is
 recomputed as ``(n . P0) / (n . d)`` from edge vectors and is accurate to a few ulp of the
 depth in float64 (the bunny's back-projected depth lies on the hit triangle's plane to
-~1e-13 m at 0.3-0.5 m, tests/test_tour_render.py). In float32 the depth agreement with
+~1e-13 m at 0.3-0.5 m, tests/tour/test_tour_render.py). In float32 the depth agreement with
 Open3D is reported in ``docs/benchmarks_render.md``.
 """
 

@@ -1,7 +1,7 @@
 """Tour sections for calibration (issue 7): the real chessboard vs OpenCV, and plumb-line calibration.
 
 Each section wraps a pure ``measure_*`` function that returns a dict of numbers;
-``tests/test_tour_calibration.py`` (and the calibration tests) assert those numbers.
+``tests/tour/test_tour_calibration.py`` (and the calibration tests) assert those numbers.
 :func:`measure_real_chessboard` is cached per process, so the 14 detections and the two
 calibrations run once however many tests read them.
 
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fsjax.tour import Section, _panel
+from ._core import Section, _panel
 
 __all__ = ["measure_real_chessboard", "measure_plumb_line", "measure_length_sensitivity", "SECTIONS"]
 
@@ -385,30 +385,3 @@ def length_sensitivity(out: Path, quick: bool) -> Section:
 
 
 SECTIONS = [real_chessboard, plumb_line, length_sensitivity]
-
-
-def main(argv=None) -> None:
-    """``python -m fsjax.tour_calibration --write-docs``: run the sections, write ``docs/figures/calibration_*.png``."""
-    import argparse
-    import time
-
-    ap = argparse.ArgumentParser(description=main.__doc__)
-    ap.add_argument("--write-docs", action="store_true", help="write the figures into docs/figures")
-    ap.add_argument("--out", default=None, help="output folder (default: docs/figures with --write-docs)")
-    a = ap.parse_args(argv)
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    out = Path(a.out) if a.out else (Path(__file__).resolve().parents[1] / "docs" / "figures" if a.write_docs
-                                     else Path("."))
-    out.mkdir(parents=True, exist_ok=True)
-    for fn in SECTIONS:
-        t0 = time.perf_counter()
-        sec = fn(out, False)
-        print(f"## {sec.title} ({time.perf_counter() - t0:.1f} s)\nfigure: {sec.figure}")
-        for k, v in sec.rows:
-            print(f"| {k} | {v} |")
-
-
-if __name__ == "__main__":
-    main()

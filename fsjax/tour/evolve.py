@@ -20,7 +20,8 @@ from fsjax.evolve import genome as G
 from fsjax.evolve.problems import make_problem
 from fsjax.evolve.runs import run_problem
 from fsjax.evolve.search import GAConfig
-from fsjax.tour import Section, _panel
+
+from ._core import Section, _panel
 
 __all__ = ["measure_evolution", "SECTIONS", "TOUR_VOCABULARY"]
 

@@ -6,7 +6,7 @@ fsjax ops, each compiled once with ``jax.jit``), their scoring against the
 truth, and the ``fsjax tour`` sections (:data:`SECTIONS`) that print the
 figures beside the null.
 
-Surface defects (:func:`fsjax.synth._defects.surface_defects`):
+Surface defects (:func:`fsjax.synth.surface_defects`):
 
 1. Background: the surface without its defects is estimated by a *median*
    filter. The ``median`` op caps its radius at 5 px (an 11 x 11 window), far
@@ -37,7 +37,7 @@ Scoring (:func:`score_defects`): a true defect is *detected* when exactly one
 reported region overlaps its footprint and that region overlaps no other
 defect; a reported region that overlaps no footprint is a *false positive*.
 
-Particle counting (:func:`fsjax.synth._particles.particle_scene`): ``otsu``,
+Particle counting (:func:`fsjax.synth.particle_scene`): ``otsu``,
 then ``watershed_split`` (distance-transform h-maxima markers, watershed of
 the negated distance) and ``region_props`` centroids; the null is ``label``
 of the same mask (touching pairs stay merged). Each disc is matched to the
@@ -57,9 +57,9 @@ import numpy as np
 
 from fsjax import Image, Labels, RegionProps
 from fsjax import ops as O
-from fsjax.synth._defects import surface_defects
-from fsjax.synth._particles import particle_scene
-from fsjax.tour import Section, _panel
+from fsjax.synth import particle_scene, surface_defects
+
+from ._core import Section, _panel
 
 __all__ = [
     "DEFECT_TYPES",

@@ -8,7 +8,7 @@ Each method is measured against the SDF renderer's own ground truth and beside i
   stripes) and phase alone (no unwrapping).
 
 The pure ``measure_*`` functions return dicts of numbers (asserted by
-``tests/test_tour_measure3d.py``); the section functions wrap them into
+``tests/tour/test_tour_measure3d.py``); the section functions wrap them into
 :class:`fsjax.tour.Section` with a PNG. Quick mode renders smaller images; the cost is
 dominated by compiling the sphere tracer (a few seconds on an idle 2-core machine).
 """
@@ -23,7 +23,8 @@ import numpy as np
 import fsjax
 from fsjax.ops import _photometric as P
 from fsjax.ops import _structured_light as SL
-from fsjax.tour import Section, _panel
+
+from ._core import Section, _panel
 
 __all__ = ["measure_photometric", "measure_structured_light", "SECTIONS"]
 

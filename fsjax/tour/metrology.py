@@ -1,10 +1,10 @@
 """Tour sections for 2-D inspection metrology and alignment (issue 3, scenes 2, 3 and 5).
 
 Each scene has a pure ``measure_*`` function that builds the exact scene
-(``fsjax.synth._inspection`` / ``fsjax.synth._workpiece``), measures it with
+(``fsjax.synth``: ``shaft``, ``edge_sweep``, ``bar_code``, ``alignment_scene``), measures it with
 fsjax and with the null on the same data, and returns a dict of numbers; the
 section functions wrap those dicts into :class:`fsjax.tour.Section` with a PNG.
-``tests/test_tour_metrology.py`` asserts the numbers of the ``measure_*``
+``tests/tour/test_tour_metrology.py`` asserts the numbers of the ``measure_*``
 functions directly.
 
 Nulls:
@@ -26,9 +26,16 @@ import numpy as np
 from scipy import ndimage as ndi
 
 import fsjax
-from fsjax.synth._inspection import bar_code, edge_sweep, shaft
-from fsjax.synth._workpiece import alignment_scene, render_part, workpiece_template
-from fsjax.tour import Section, _panel
+from fsjax.synth import (
+    alignment_scene,
+    bar_code,
+    edge_sweep,
+    render_part,
+    shaft,
+    workpiece_template,
+)
+
+from ._core import Section, _panel
 
 __all__ = ["measure_shaft", "measure_edge_sweep", "measure_alignment", "measure_bars", "SECTIONS"]
 

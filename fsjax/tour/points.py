@@ -1,7 +1,7 @@
 """Tour sections for 3-D points (issue 4: LiDAR clustering, curvature, RANSAC breakdown, model selection).
 
 Each scene has a pure ``measure_*`` function returning a dict of numbers
-(asserted by ``tests/test_tour_points.py``; ``tools/points_figures.py`` charts
+(asserted by ``tests/tour/test_tour_points.py``; ``tools/points_figures.py`` charts
 them for ``docs/points.md``); the section functions wrap them into
 :class:`fsjax.tour.Section` with a figure.
 
@@ -32,9 +32,10 @@ import numpy as np
 
 import fsjax
 from fsjax.fit import ransac, select_model
-from fsjax.ops._points_segment import cluster_centroids
+from fsjax.ops import cluster_centroids
 from fsjax.synth import lidar_scene
-from fsjax.tour import Section
+
+from ._core import Section
 
 __all__ = ["measure_lidar", "measure_curvature", "measure_breakdown", "measure_model_selection",
            "plane_scene", "surface_patch", "SECTIONS"]
@@ -97,7 +98,8 @@ def measure_curvature(n: int = 1500, radius: float = 0.5, k: int = 16) -> dict:
     centre = np.sum(g ** 2, 1) < 0.05
     curv = np.asarray(cs["curvedness"])
     # null: PCA surface variation l0 / sum(l) of the same neighbourhoods, scaled on the sphere
-    from fsjax.ops._points import knn, pca_frames
+    from fsjax.ops import knn
+    from fsjax.ops._points import pca_frames
 
     def variation(xyz):
         x = jnp.asarray(xyz)

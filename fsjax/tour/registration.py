@@ -1,7 +1,7 @@
 """Tour sections for 3-D registration (issue 4: bunny self-registration, basin of convergence, global registration).
 
 Each scene has a pure ``measure_*`` function returning a dict of numbers (asserted by
-``tests/test_tour_registration.py`` and ``tests/fit/``); the section functions wrap them into
+``tests/tour/test_tour_registration.py`` and ``tests/fit/``); the section functions wrap them into
 :class:`fsjax.tour.Section` with a figure.
 
 Scenes (all on area-weighted samples of the bundled Stanford Bunny, metres):
@@ -27,7 +27,8 @@ import numpy as np
 
 from fsjax.fit import icp, icp_multistart, rotation_error_deg, rotation_from_axis_angle
 from fsjax.fit.icp import _bunny_points
-from fsjax.tour import Section
+
+from ._core import Section
 
 __all__ = ["measure_self_registration", "measure_basin", "measure_global", "SECTIONS"]
 

@@ -10,7 +10,7 @@
   the rasteriser says it hit (to rounding), and the normal channel equals the mesh's face
   normal. Null: the distance to the nearest mesh *vertex* (a point-sampled surface).
 
-Pure ``measure_*`` functions return dicts of numbers; ``tests/test_tour_render.py``
+Pure ``measure_*`` functions return dicts of numbers; ``tests/tour/test_tour_render.py``
 asserts them; the section functions wrap them into :class:`fsjax.tour.Section`.
 """
 
@@ -26,7 +26,8 @@ import numpy as np
 import fsjax
 from fsjax.render import backproject, look_at, pixel_grid_uv, rasterize, sun_visibility
 from fsjax.render.shading import hapke
-from fsjax.tour import Section, _panel
+
+from ._core import Section, _panel
 
 __all__ = ["bunny_scene", "measure_bunny", "measure_channels", "SECTIONS"]
 

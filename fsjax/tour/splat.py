@@ -16,7 +16,8 @@ import numpy as np
 
 import fsjax
 from fsjax.render import intrinsics_from_fov, look_at, render_splats, rgb_to_sh0
-from fsjax.tour import Section, _panel
+
+from ._core import Section, _panel
 
 __all__ = ["ground_plane", "low_camera", "measure_near_plane", "SECTIONS"]
 

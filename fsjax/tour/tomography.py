@@ -1,6 +1,6 @@
 """Tour section: computed tomography of a three-material phantom (issue 5, measurement 4).
 
-The phantom of :mod:`fsjax.synth._phantom` (water, cortical bone, aluminium at 60 keV,
+The phantom of :func:`fsjax.synth.ct_phantom` (water, cortical bone, aluminium at 60 keV,
 0.75 mm pixels), an analytic sinogram with photon-counting noise, reconstructed by
 ``filtered_backprojection``; the nulls are unfiltered back-projection (given its best
 scale) and FBP from 24 views. The scan is mis-centred by a known offset, which
@@ -18,7 +18,8 @@ from scipy import ndimage as ndi
 from fsjax import Image
 from fsjax import ops as O
 from fsjax.synth import CT_MATERIALS, ct_phantom, ct_sinogram
-from fsjax.tour import Section, _panel
+
+from ._core import Section, _panel
 
 __all__ = ["measure_ct", "tomography", "SECTIONS"]
 

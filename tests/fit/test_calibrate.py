@@ -9,7 +9,7 @@ import pytest
 from fsjax.fit.calibrate import calibrate_camera, homography_dlt, project_board, rodrigues
 from fsjax.fit.chessboard import board_points
 from fsjax.render.camera import distort_normalized
-from fsjax.tour_calibration import measure_real_chessboard
+from fsjax.tour.calibration import measure_real_chessboard
 
 
 def test_real_chessboard_vs_opencv():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fsjax.fit.chessboard import board_points, find_chessboard, refine_corners, saddle_response
-from fsjax.tour_calibration import measure_real_chessboard
+from fsjax.tour.calibration import measure_real_chessboard
 
 
 def _render_board(H, nx=7, ny=5, shape=(200, 260), ss=4):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fsjax.tour_calibration import measure_length_sensitivity, measure_plumb_line
+from fsjax.tour.calibration import measure_length_sensitivity, measure_plumb_line
 
 
 def test_plumb_line_through_caliper():

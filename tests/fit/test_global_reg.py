@@ -9,7 +9,7 @@ import pytest
 
 from fsjax.fit import fpfh, ransac_registration, rotation_error_deg, rotation_from_axis_angle
 from fsjax.fit.icp import _bunny_points
-from fsjax.tour_registration import measure_global
+from fsjax.tour.registration import measure_global
 
 COARSE_MAX = 1.0  # issue 4 item 2: FPFH + RANSAC (with the point-pair refit) within 1 deg
 

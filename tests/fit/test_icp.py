@@ -15,7 +15,7 @@ from fsjax.fit import (
     rotation_grid,
 )
 from fsjax.fit.icp import _bunny_points, knn
-from fsjax.tour_registration import measure_basin, measure_self_registration
+from fsjax.tour.registration import measure_basin, measure_self_registration
 
 
 def test_knn_matches_ckdtree():

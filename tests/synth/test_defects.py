@@ -14,7 +14,7 @@ import scipy.ndimage as ndi
 
 from fsjax import Image
 from fsjax.synth._defects import DEFECT_KINDS, surface_defects
-from fsjax.tour_inspection import defect_background, detect_defects, inspect_surface, score_defects
+from fsjax.tour.inspection import defect_background, detect_defects, inspect_surface, score_defects
 
 SIZE = (512, 512)
 

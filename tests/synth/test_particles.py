@@ -15,7 +15,7 @@ import scipy.ndimage as ndi
 
 from fsjax import Image
 from fsjax.synth._particles import particle_scene
-from fsjax.tour_inspection import count_particles, score_particles
+from fsjax.tour.inspection import count_particles, score_particles
 
 EIGHT = np.ones((3, 3), int)
 

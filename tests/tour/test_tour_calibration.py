@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import pytest
 
-from fsjax import tour_calibration as T
 from fsjax.tour import Section
+from fsjax.tour import calibration as T
 
 
 @pytest.mark.slow  # repeats the cached measurements of tests/fit in its own process under xdist

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fsjax import tour_evolve as T
 from fsjax.tour import Section
+from fsjax.tour import evolve as T
 
 
 def test_evolution_section(tmp_path):

@@ -11,8 +11,8 @@ import functools
 
 import pytest
 
-from fsjax import tour_measure3d as T
 from fsjax.tour import Section
+from fsjax.tour import measure3d as T
 
 pytestmark = pytest.mark.slow  # tour quick mode repeats measurements tested elsewhere; runs last
 

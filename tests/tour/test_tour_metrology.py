@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fsjax import tour_metrology as T
 from fsjax.tour import Section
+from fsjax.tour import metrology as T
 
 
 @pytest.mark.parametrize("fn", T.SECTIONS, ids=lambda f: f.__name__)

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import pytest
 
-from fsjax import tour_points as T
 from fsjax.tour import Section
+from fsjax.tour import points as T
 
 # the LiDAR and model-selection figures are also asserted by tests/ops/test_points_segment.py and
 # tests/fit/test_primitives3d.py; their tour runs (compile-heavy) are marked slow

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from fsjax import tour_registration as T
 from fsjax.tour import Section
+from fsjax.tour import registration as T
 
 
 @pytest.mark.slow

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import pytest
 
-from fsjax import tour_render as T
 from fsjax.tour import Section
+from fsjax.tour import render as T
 
 pytestmark = pytest.mark.slow  # tour quick mode repeats measurements tested elsewhere; runs last
 

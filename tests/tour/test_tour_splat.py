@@ -1,7 +1,7 @@
 """Tour section for splatting: runs in quick mode, beats its null (centre-only culling)."""
 
-from fsjax import tour_splat as T
 from fsjax.tour import Section
+from fsjax.tour import splat as T
 
 
 def test_near_plane_section(tmp_path):

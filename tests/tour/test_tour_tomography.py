@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from fsjax import tour_tomography as T
 from fsjax.tour import Section
+from fsjax.tour import tomography as T
 
 
 def test_section_runs(tmp_path):
