@@ -544,7 +544,7 @@ def profile(grey: np.ndarray, masks: np.ndarray, imgs: np.ndarray, tpls: np.ndar
     from skimage import filters
 
     import fsjax
-    from fsjax.ops import _label as L
+    from fsjax.ops.measure2d import _label as L
 
     out: dict[str, Any] = {}
     g, m = jax.device_put(grey[0]), jax.device_put(masks[0])
@@ -592,7 +592,7 @@ def profile(grey: np.ndarray, masks: np.ndarray, imgs: np.ndarray, tpls: np.ndar
     f_scan = jax.jit(scan_rows)
     out["one trivial lax.scan over the rows"] = _median_time(lambda: f_scan(m), reps)
     try:
-        from fsjax.ops import _distance as D
+        from fsjax.ops.image import _distance as D
 
         f_line = jax.jit(lambda x: D._line_dist((~x).T, jnp.float32))
         gsq = (f_line(m) ** 2).T

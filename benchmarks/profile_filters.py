@@ -34,8 +34,8 @@ from _harness import jax_compile, time_round_robin  # noqa: E402
 from bench_filters import _fsjax_call, make_batch, reference  # noqa: E402
 
 # The exact selection network now lives in fsjax (median fast path); reuse it.
-from fsjax.ops._filters import _batcher_pairs as batcher_pairs  # noqa: E402
-from fsjax.ops._filters import _selection_network as selection_network  # noqa: E402
+from fsjax.ops.image._filters import _batcher_pairs as batcher_pairs  # noqa: E402
+from fsjax.ops.image._filters import _selection_network as selection_network  # noqa: E402
 
 
 def main(argv=None) -> int:

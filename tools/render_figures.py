@@ -5,7 +5,7 @@ Usage::
     python tools/render_figures.py          # writes docs/figures/measurement_rendering_*.png and the page
 
 Everything is measured here, against the SDF renderer's ground truth, with the same functions
-the tests assert (``fsjax.ops._photometric``, ``fsjax.ops._structured_light``,
+the tests assert (``fsjax.ops.measure3d._photometric``, ``fsjax.ops.measure3d._structured_light``,
 ``fsjax.render.sdf``). Takes a few minutes on a shared 2-core machine (compilation).
 """
 
@@ -32,8 +32,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import fsjax  # noqa: E402
-from fsjax.ops import _photometric as P  # noqa: E402
-from fsjax.ops import _structured_light as SL  # noqa: E402
+from fsjax.ops.measure3d import _photometric as P  # noqa: E402
+from fsjax.ops.measure3d import _structured_light as SL  # noqa: E402
 from fsjax.render import sdf as S  # noqa: E402
 
 FIG = REPO / "docs" / "figures"
@@ -225,7 +225,7 @@ the exact overlap of the light disc with the sphere's angular disc: max differen
 
 ## Photometric stereo
 
-Still life (`fsjax.ops._photometric.still_life_scene`: sunk sphere, torus, capsule and a cone
+Still life (`fsjax.ops.measure3d._photometric.still_life_scene`: sunk sphere, torus, capsule and a cone
 on a plane, five albedos), telecentric view 96 x 72, Lambertian, 8 distant lights.
 
 * No shadows (lights at 66-78 deg): least squares, the robust solver and LMedS all recover the

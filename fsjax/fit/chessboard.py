@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..ops._caliper import bilinear
+from ..ops.measure2d._caliper import bilinear
 
 __all__ = ["ChessboardCorners", "saddle_response", "refine_corners", "find_chessboard", "board_points"]
 

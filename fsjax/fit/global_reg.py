@@ -40,7 +40,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..types import Points
-from ..ops._points_search import _BRUTE_LIMIT, build_index
+from ..ops.points._search import _BRUTE_LIMIT, build_index
 from .icp import ICPResult, _as_cloud, estimate_normals, icp, knn
 from .rigid import NO_HYPOTHESIS, OK, TOO_FEW, _weighted_kabsch, kabsch_umeyama, reason_message
 

@@ -68,7 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..ops._points_search import (
+from ..ops.points._search import (
     _BRUTE_LIMIT,
     GridIndex,
     _batched,

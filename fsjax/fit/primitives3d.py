@@ -362,7 +362,7 @@ def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
       >>> round(float(f["r"]), 6), round(float(f["az"]), 6)
       (0.5, 1.0)
     """
-    from ..ops._points import knn
+    from ..ops.points._cloud import knn
 
     x, v = _prep(xyz, valid)
     c, _, evec = _pca(x, v)

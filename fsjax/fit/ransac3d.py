@@ -391,7 +391,7 @@ def _core(key, xyz, valid, normals, thr, min_frac, *, model, n_hyp, max_steps, r
 
 @jax.jit
 def _pca_normals(xyz, v):
-    from ..ops._points import knn, pca_frames
+    from ..ops.points._cloud import knn, pca_frames
 
     vv = v & jnp.all(jnp.isfinite(xyz), axis=-1)
     x0 = jnp.where(vv[:, None], xyz, 0.0)

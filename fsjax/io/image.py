@@ -159,7 +159,7 @@ def read_image(path: str | os.PathLike, *, as_grey: bool | None = None, lineariz
 
     out = jnp.asarray(data, dtype=jnp.result_type(float))
     if linearize:
-        from ..ops._color import srgb_to_linear
+        from ..ops.image._color import srgb_to_linear
 
         out = srgb_to_linear(out)
         notes.append("sRGB decoded")
@@ -240,7 +240,7 @@ def write_image(path: str | os.PathLike, img: Image | Color | Region, *, bit_dep
     if isinstance(img, Color) and bit_depth == 16:
         raise ValueError("write_image: bit_depth=16 is supported for Image only (Pillow writes 8-bit colour PNG)")
     if srgb:
-        from ..ops._color import linear_to_srgb
+        from ..ops.image._color import linear_to_srgb
 
         arr = np.asarray(linear_to_srgb(np.clip(arr, 0.0, 1.0)))
     full = 255.0 if bit_depth == 8 else 65535.0

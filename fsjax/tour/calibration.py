@@ -166,7 +166,7 @@ def _plumb_measure(img, k):
     import jax.numpy as jnp
 
     import fsjax
-    from fsjax.ops._caliper import bilinear
+    from fsjax.ops.measure2d._caliper import bilinear
     from fsjax.render.camera import distort_normalized
 
     p = PLUMB
@@ -340,7 +340,7 @@ def plumb_line(out: Path, quick: bool) -> Section:
     p = PLUMB
     h, w = p["shape"]
     v, u = np.mgrid[0:h, 0:w].astype(float)
-    from fsjax.ops._caliper import bilinear
+    from fsjax.ops.measure2d._caliper import bilinear
     from fsjax.render.camera import distort_normalized
 
     xy = np.stack([(u - p["c"][0]) / p["f"], (v - p["c"][1]) / p["f"]], -1)

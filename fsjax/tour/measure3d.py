@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 import fsjax
-from fsjax.ops import _photometric as P
-from fsjax.ops import _structured_light as SL
+from fsjax.ops.measure3d import _photometric as P
+from fsjax.ops.measure3d import _structured_light as SL
 
 from ._core import Section, _panel
 

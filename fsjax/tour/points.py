@@ -99,7 +99,7 @@ def measure_curvature(n: int = 1500, radius: float = 0.5, k: int = 16) -> dict:
     curv = np.asarray(cs["curvedness"])
     # null: PCA surface variation l0 / sum(l) of the same neighbourhoods, scaled on the sphere
     from fsjax.ops import knn
-    from fsjax.ops._points import pca_frames
+    from fsjax.ops.points._cloud import pca_frames
 
     def variation(xyz):
         x = jnp.asarray(xyz)

@@ -14,7 +14,7 @@ from skimage import data
 import fsjax
 from fsjax import Color, Image, Region
 from fsjax.io import read_image, write_image
-from fsjax.ops._color import srgb_to_linear
+from fsjax.ops.image._color import srgb_to_linear
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ from fsjax.ops import (
     rgb_to_hsv,
     rgb_to_lab,
 )
-from fsjax.ops._color import WHITE_D65, XYZ_FROM_RGB, linear_to_srgb, srgb_to_linear
+from fsjax.ops.image._color import WHITE_D65, XYZ_FROM_RGB, linear_to_srgb, srgb_to_linear
 from fsjax.synth import standard_input
 
 

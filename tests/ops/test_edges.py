@@ -1,7 +1,7 @@
 """Derivatives and edge detectors: conformance with SciPy / scikit-image / OpenCV on
 real photographs, analytic ground truths (ramps, quadratics, discs), and nulls.
 
-Scaling conventions (see ``fsjax/ops/_edges.py``): fsjax gradients are in grey
+Scaling conventions (see ``fsjax/ops/image/_edges.py``): fsjax gradients are in grey
 value per pixel, i.e. SciPy's Sobel / 8, Prewitt / 6, OpenCV's Scharr / 32;
 scikit-image's ``sobel``/``prewitt``/``scharr`` magnitudes equal sqrt(2) times
 ours; its structure tensor is 8^2 times ours.

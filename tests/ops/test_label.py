@@ -17,7 +17,7 @@ import skimage.morphology
 import skimage.segmentation
 
 import fsjax
-from fsjax.ops._label import cumsum_count, label_array
+from fsjax.ops.measure2d._label import cumsum_count, label_array
 
 CONNS = (4, 8)
 STRUCT = {4: None, 8: np.ones((3, 3), int)}

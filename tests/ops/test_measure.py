@@ -15,7 +15,7 @@ import skimage.filters
 import skimage.measure
 
 import fsjax
-from fsjax.ops._measure import GREY_COLUMNS, SHAPE_COLUMNS
+from fsjax.ops.measure2d._measure import GREY_COLUMNS, SHAPE_COLUMNS
 from fsjax.synth import standard_input
 
 # (absolute, relative) tolerance per column, float64; "exact" columns are integers or

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import fsjax
-from fsjax.ops import _photometric as P
+from fsjax.ops.measure3d import _photometric as P
 
 SIZE = dict(width=64, height=48, pixel_size=0.1)
 # 8 lights; steep ones leave no shadow on this still life (checked), low ones cast shadows

@@ -13,7 +13,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 import fsjax
-from fsjax.ops import _points as P
+from fsjax.ops.points import _cloud as P
 
 
 def fib_sphere(n, r=1.0, c=(0.0, 0.0, 0.0)):

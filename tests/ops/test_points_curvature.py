@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import fsjax
-from fsjax.ops._points_curvature import PointValues
+from fsjax.ops.points._curvature import PointValues
 
 
 def fib_sphere(n, r=1.0):

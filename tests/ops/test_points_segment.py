@@ -12,7 +12,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 import fsjax
-from fsjax.ops._points_segment import PointLabels, cluster_centroids
+from fsjax.ops.points._segment import PointLabels, cluster_centroids
 from fsjax.synth import lidar_scene
 
 

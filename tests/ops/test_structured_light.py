@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import fsjax
-from fsjax.ops import _structured_light as SL
+from fsjax.ops.measure3d import _structured_light as SL
 
 
 @pytest.fixture(scope="module")

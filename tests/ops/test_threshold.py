@@ -14,7 +14,7 @@ import pytest
 import scipy.ndimage as ndi
 
 import fsjax
-from fsjax.ops import _threshold as T
+from fsjax.ops.image import _threshold as T
 
 skimage = pytest.importorskip("skimage")
 from skimage import data, img_as_float  # noqa: E402

@@ -1,0 +1,447 @@
+"""Structured light: phase-shifted fringes plus complementary Gray code, triangulated per pixel.
+
+Conventions:
+
+* The projector is an inverse camera: a :class:`fsjax.Camera` (OpenCV frame, ``world_from_camera``
+  pose, no distortion used) whose pixel columns ``u_p`` (pixel centres on integers, the image
+  spanning ``[-0.5, W_p - 0.5]``) carry the patterns. A :class:`StructuredLightRig` pairs the
+  capturing camera with the projector; units are the world's (mm in the tests).
+* Fringes: ``N`` frames ``I_k = A + B cos(phi - 2 pi k / N)`` with ``phi = 2 pi (u_p + 0.5) / P - pi``
+  for a period of ``P`` projector pixels, so the wrapped phase lies in ``[-pi, pi)`` and the
+  period index is ``floor((u_p + 0.5) / P)``.
+* Gray code: a :class:`GrayStack` holds ``2 n`` frames, each bit's pattern followed by its
+  inverse (complementary frames, so a bit is decided by ``I > I_inverse`` without a global
+  threshold), most significant bit first. Stripe ``j`` of width ``w`` covers
+  ``(u_p + 0.5) / w in [j, j + 1)``; the complementary code adds one bit of half-period
+  stripes shifted by half a period (Zhang et al. 2012), which lets :func:`absolute_phase`
+  avoid the stripe boundaries: it tolerates a fringe-to-code misregistration of up to a
+  quarter period (lambda / 4) and fails beyond (tested).
+* Decoded codes and phases are returned as :class:`fsjax.Image` holding radians or stripe
+  indices (not values in [0, 1]); undecidable pixels (contrast below ``min_contrast``) get
+  code -1, and :func:`absolute_phase` turns them into NaN.
+
+References: V. Srinivasan, H. C. Liu, M. Halioua, "Automated phase-measuring profilometry of
+3-D diffuse objects", Applied Optics 23(18) (1984) (N-step phase shifting); J. L. Posdamer and
+M. D. Altschuler, "Surface measurement by space-encoded projected beam systems", CGIP 18 (1982)
+(binary codes); Q. Zhang, X. Su, L. Xiang, X. Sun, "3-D shape measurement based on
+complementary Gray-code light", Optics and Lasers in Engineering 50(4) (2012).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ...registry import LinKnob, register
+from ...render.camera import pixel_rays
+from ...synth._pool import register_pool
+from ...types import Camera, Depth, Image, Sort
+from ...types._base import _as_array
+from .._common import check_range
+
+__all__ = ["FringeStack", "GrayStack", "StructuredLightRig", "wrapped_phase", "graycode_decode",
+           "absolute_phase", "triangulate_column"]
+
+
+class FringeStack(Sort):
+    """``N >= 3`` phase-shifted fringe images ``data (*batch, N, H, W)``, shifts ``2 pi k / N``."""
+
+    data: Float[Array, "*batch N H W"]
+    _float_fields = ("data",)
+
+    def __init__(self, data: Any):
+        self.data = _as_array(data, sort="FringeStack", field="data", kind="float", min_ndim=3)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.data.shape[:-3])
+
+
+class GrayStack(Sort):
+    """``2 n`` Gray-code frames ``data (*batch, 2n, H, W)``: bit pattern then its inverse, MSB first."""
+
+    data: Float[Array, "*batch F H W"]
+    _float_fields = ("data",)
+
+    def __init__(self, data: Any):
+        self.data = _as_array(data, sort="GrayStack", field="data", kind="float", min_ndim=3)
+        if self.data.shape[-3] % 2:
+            raise ValueError(f"GrayStack(data=...): needs pattern/inverse pairs, got {self.data.shape[-3]} frames")
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.data.shape[:-3])
+
+
+class StructuredLightRig(Sort):
+    """A capturing ``camera`` and a ``projector`` (both :class:`fsjax.Camera`, OpenCV frame)."""
+
+    camera: Camera
+    projector: Camera
+    _float_fields = ()
+
+    def __init__(self, camera: Camera, projector: Camera):
+        for name, c in (("camera", camera), ("projector", projector)):
+            if not isinstance(c, Camera):
+                raise TypeError(f"StructuredLightRig({name}=...): expected a Camera, got {type(c).__name__}")
+        self.camera, self.projector = camera, projector
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return self.camera.batch_shape
+
+
+def _fringe_pool(variant, size):
+    h, w = size
+    r, c = np.mgrid[0:h, 0:w].astype(float)
+    phi = 0.3 * c + 0.1 * r + 0.2 * variant - 3.0
+    n = 4
+    k = np.arange(n)[:, None, None]
+    return 0.5 + 0.4 * np.cos(phi[None] - 2 * np.pi * k / n)
+
+
+@register_pool(FringeStack)
+def _pool_fringe(variant, size):
+    """4-step fringes of a phase ramp ``0.3 col + 0.1 row - 3``, contrast 0.4."""
+    return FringeStack(jnp.asarray(_fringe_pool(variant, size)))
+
+
+def gray_frames(code, n_bits: int, *, high: float = 0.9, low: float = 0.1) -> np.ndarray:
+    """Complementary Gray-code frames ``(2 n_bits, ...)`` of integer stripe indices ``code``."""
+    code = np.asarray(code, np.int64)
+    g = code ^ (code >> 1)
+    out = []
+    for b in range(n_bits - 1, -1, -1):
+        bit = (g >> b) & 1
+        out += [np.where(bit, high, low), np.where(bit, low, high)]
+    return np.stack(out).astype(float)
+
+
+@register_pool(GrayStack)
+def _pool_gray(variant, size):
+    """4-bit complementary Gray code of stripes 2 columns wide."""
+    h, w = size
+    c = np.broadcast_to(np.arange(w), (h, w))
+    return GrayStack(jnp.asarray(gray_frames((c + variant) // 2 % 16, 4)))
+
+
+@register_pool(StructuredLightRig)
+def _pool_rig(variant, size):
+    """Camera 32 x 24 at the origin looking +z; 64-column projector 100 mm to the right, aimed at z = 500 mm."""
+    from ...render.camera import look_at
+
+    cam = Camera.from_intrinsics(40.0, 40.0, 15.5, 11.5, width=32, height=24)
+    R, t = look_at([100.0 + 10.0 * variant, 0.0, 0.0], [0.0, 0.0, 500.0], up=[0.0, -1.0, 0.0])
+    proj = Camera.from_intrinsics(80.0, 80.0, 31.5, 23.5, width=64, height=48, R=R, t=t)
+    return StructuredLightRig(cam, proj)
+
+
+@register(family="structured_light", takes=FringeStack, gives=Image, refs=["Srinivasan et al. 1984"])
+def wrapped_phase(stack: FringeStack, /) -> Image:
+    """Wrapped phase of ``N``-step phase-shifted fringes, in radians in ``[-pi, pi]``.
+
+    For ``I_k = A + B cos(phi - 2 pi k / N)``, ``phi = atan2(sum I_k sin d_k, sum I_k cos d_k)``
+    with ``d_k = 2 pi k / N`` (least squares for ``N >= 3``; exact without noise, independent of
+    ``A`` and ``B > 0``). Signed output (radians), not in [0, 1]. Not differentiable: the
+    result wraps at +-pi.
+
+    Args:
+        stack: :class:`FringeStack` of ``N >= 3`` frames.
+
+    Returns:
+        :class:`Image` of the wrapped phase (radians).
+
+    Example:
+        >>> from fsjax.ops.measure3d._structured_light import FringeStack
+        >>> k = np.arange(4)[:, None, None]
+        >>> frames = 0.5 + 0.3 * np.cos(1.2 - 2 * np.pi * k / 4) * np.ones((4, 2, 2))
+        >>> round(float(fsjax.ops.wrapped_phase(FringeStack(jnp.asarray(frames))).data[0, 0]), 12)
+        1.2
+    """
+    N = stack.data.shape[-3]
+    if N < 3:
+        raise ValueError(f"wrapped_phase: argument 'stack' needs at least 3 frames, got {N}")
+    d = 2.0 * jnp.pi * jnp.arange(N, dtype=stack.data.dtype) / N
+    s = jnp.tensordot(jnp.sin(d), stack.data, axes=1)
+    c = jnp.tensordot(jnp.cos(d), stack.data, axes=1)
+    return Image(jnp.arctan2(s, c))
+
+
+@register(family="structured_light", takes=GrayStack, gives=Image,
+          knobs={"min_contrast": LinKnob(0.0, 0.3)}, refs=["Posdamer and Altschuler 1982"])
+def graycode_decode(stack: GrayStack, /, *, min_contrast: float = 0.02) -> Image:
+    """Stripe index from complementary Gray-code frames (bit = pattern brighter than its inverse).
+
+    Each bit is ``I_pattern > I_inverse``; the Gray word (MSB first) is converted to binary by
+    the prefix XOR ``b_i = b_{i-1} xor g_i``. A pixel where any bit's contrast
+    ``|I_pattern - I_inverse|`` is at most ``min_contrast`` (shadowed from the projector, or
+    on a stripe edge) is undecidable and gets -1.
+
+    Args:
+        stack: :class:`GrayStack` of ``2 n`` frames (n bits, pattern/inverse pairs).
+        min_contrast: least decisive contrast, knob ``a`` in [0, 0.3] (intensity units).
+
+    Returns:
+        :class:`Image` of stripe indices ``0 .. 2^n - 1`` as floats (-1 where undecidable).
+
+    Example:
+        >>> from fsjax.ops.measure3d._structured_light import GrayStack, gray_frames
+        >>> codes = np.arange(8).reshape(2, 4)
+        >>> out = fsjax.ops.graycode_decode(GrayStack(jnp.asarray(gray_frames(codes, 3))))
+        >>> np.asarray(out.data).astype(int).tolist()
+        [[0, 1, 2, 3], [4, 5, 6, 7]]
+    """
+    check_range("graycode_decode", "min_contrast", min_contrast, 0.0, None)
+    x = stack.data
+    pat, inv = x[0::2], x[1::2]
+    g = (pat > inv).astype(jnp.int32)
+    b = jnp.cumsum(g, axis=0) % 2  # prefix XOR
+    n = b.shape[0]
+    w = (2 ** jnp.arange(n - 1, -1, -1, dtype=jnp.int32))[:, None, None]
+    code = jnp.sum(b * w, axis=0)
+    ok = jnp.all(jnp.abs(pat - inv) > min_contrast, axis=0)
+    return Image(jnp.where(ok, code, -1).astype(x.dtype))
+
+
+@register(family="structured_light", takes=(Image, Image, Image), gives=Image,
+          refs=["Zhang, Su, Xiang and Sun 2012"])
+def absolute_phase(wrapped: Image, code: Image, code_shifted: Image, /) -> Image:
+    """Absolute (unwrapped) phase from the wrapped phase and the complementary Gray code.
+
+    ``code`` is the period index ``k1`` (Gray stripes one period wide) and ``code_shifted`` the
+    index ``k2`` of the one-bit-longer code whose stripes are half a period wide (so
+    ``k2 = floor(2 (u + 0.5) / P)`` and ``floor((k2 + 1) / 2)`` is the period index of a grid
+    shifted by half a period). Near the period edges, where ``k1`` may be off by one, the
+    shifted code decides: ``m = floor((k2 + 1) / 2)`` if ``phi <= -pi/2``, ``m = floor((k2 + 1) / 2) - 1``
+    if ``phi >= pi/2``, else ``k1``; the result is ``phi + pi + 2 pi m`` in ``[0, 2 pi K)``, i.e.
+    ``2 pi (u_p + 0.5) / P``. A wrong ``m`` needs a phase error above pi/2 (a quarter period).
+    Codes of -1 (undecidable) give NaN. Signed radians, not in [0, 1].
+
+    Args:
+        wrapped: wrapped phase in ``[-pi, pi]`` (:func:`wrapped_phase`).
+        code: period index ``k1`` (:func:`graycode_decode`); rounded to an integer.
+        code_shifted: half-period index ``k2`` of the complementary bit set; rounded.
+
+    Returns:
+        :class:`Image` of the absolute phase (radians).
+
+    Example:
+        >>> phi = jnp.asarray([[-3.0, 0.0, 3.0]])       # start, middle and end of period 2
+        >>> k1 = jnp.asarray([[2.0, 2.0, 3.0]])         # k1 already wrong at the end
+        >>> k2 = jnp.asarray([[4.0, 5.0, 5.0]])
+        >>> out = fsjax.ops.absolute_phase(fsjax.Image(phi), fsjax.Image(k1), fsjax.Image(k2))
+        >>> [round(float(v) / np.pi, 6) for v in (out.data[0] - np.pi) / 2]
+        [1.522535, 2.0, 2.477465]
+    """
+    phi = wrapped.data
+    k1 = jnp.round(code.data)
+    k2 = jnp.round(code_shifted.data)
+    m2 = jnp.floor((k2 + 1.0) / 2.0)
+    m = jnp.where(phi <= -jnp.pi / 2, m2, jnp.where(phi >= jnp.pi / 2, m2 - 1.0, k1))
+    bad = (k1 < 0) | (k2 < 0)
+    return Image(jnp.where(bad, jnp.nan, phi + jnp.pi + 2.0 * jnp.pi * m))
+
+
+@register(family="structured_light", takes=(Image, StructuredLightRig), gives=Depth, differentiable=True,
+          refs=["Hartley and Zisserman 2004 (ray-plane intersection)"])
+def triangulate_column(column: Image, rig: StructuredLightRig, /) -> Depth:
+    """Depth from the projector column seen at each camera pixel (camera ray against column plane).
+
+    Projector column ``u`` (pixel coordinates, centres on integers) spans the plane through
+    the projector centre ``C_p`` with projector-frame normal ``m = (f_x, 0, -(u - c_x))``
+    (the points ``x / z = (u - c_x) / f_x``; projector skew and distortion are ignored). The
+    camera ray ``C + s d`` (:func:`fsjax.render.pixel_rays`, undistorted) meets it at
+    ``s = n . (C_p - C) / (n . d)`` with ``n = R_p m``; depth is ``s (d . z_cam)``. Closed form,
+    differentiable in the column and in both poses. A ray parallel to the plane
+    (``|n . d| <= 1e-12 |n|``), or a hit at or behind the camera, gives NaN (no return).
+
+    Args:
+        column: :class:`Image` ``(H, W)`` of projector columns (e.g. ``absolute_phase P / 2 pi - 0.5``),
+            the camera's size.
+        rig: :class:`StructuredLightRig` (camera and projector).
+
+    Returns:
+        :class:`fsjax.Depth` of camera-frame z with the rig's camera (NaN = no return).
+
+    Checked against the renderer's true depth (RMSE <= 0.04 mm over a ~100 mm deep still life,
+    tests) and by finite differences.
+
+    Example:
+        >>> from fsjax.ops.measure3d._structured_light import StructuredLightRig
+        >>> cam = fsjax.Camera.from_intrinsics(40.0, 40.0, 1.0, 1.0, width=3, height=3)
+        >>> proj = fsjax.Camera.from_intrinsics(80.0, 80.0, 31.5, 23.5, width=64, height=48,
+        ...                                     t=jnp.asarray([100.0, 0.0, 0.0]))
+        >>> # the point at depth 400 on the camera axis is seen by projector column 31.5 - 80 * 100 / 400
+        >>> col = fsjax.Image(jnp.full((3, 3), 31.5 - 20.0))
+        >>> d = fsjax.ops.triangulate_column(col, StructuredLightRig(cam, proj))
+        >>> round(float(d.z[1, 1]), 9)
+        400.0
+    """
+    cam, proj = rig.camera, rig.projector
+    if cam.batch_shape or proj.batch_shape:
+        raise ValueError("triangulate_column: argument 'rig' must hold one camera and one projector; use jax.vmap")
+    if column.data.shape != (cam.height, cam.width):
+        raise ValueError(f"triangulate_column: argument 'column' has shape {column.data.shape}, the camera is "
+                         f"{cam.height} x {cam.width}")
+    o, d = pixel_rays(cam, undistort=bool(np.any(np.asarray(cam.dist))) if _concrete(cam.dist) else True)
+    u = column.data
+    Kp = proj.K
+    m = jnp.stack([jnp.broadcast_to(Kp[0, 0], u.shape), jnp.zeros_like(u), -(u - Kp[0, 2])], axis=-1)
+    n = m @ proj.R.T
+    num = jnp.sum(n * (proj.t - o), axis=-1)
+    den = jnp.sum(n * d, axis=-1)
+    nn = jnp.linalg.norm(n, axis=-1)
+    ok_den = jnp.abs(den) > 1e-12 * nn
+    s = num / jnp.where(ok_den, den, 1.0)
+    z = s * (d @ cam.R[:, 2])
+    ok = ok_den & (z > 0)
+    return Depth(jnp.where(ok, z, jnp.nan), cam)
+
+
+def _concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+# ---------------------------------------------------------------------------
+# scenes and captures (plain functions, not ops)
+# ---------------------------------------------------------------------------
+
+
+def still_life_mm():
+    """A still life in millimetres spanning ~100 mm in depth (z = 420 .. 520 from the camera).
+
+    Back wall z = 520 facing the camera; a sphere, a rounded box, a cylinder lying across, a
+    torus and a cone (apex towards the camera) in front of it.
+    """
+    from ...render import sdf as S
+
+    rot_x = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # local z -> world y
+    objs = [
+        S.Plane([0.0, 0.0, -1.0], -520.0),
+        S.Sphere([-45.0, -30.0, 470.0], 45.0),
+        S.RoundBox([50.0, -35.0, 495.0], [35.0, 25.0, 25.0], 6.0),
+        S.Cylinder([40.0, 40.0, 490.0], 18.0, 50.0, rotation=rot_x @ np.array([[0, 0, 1.0], [0, 1.0, 0], [-1.0, 0, 0]])),
+        S.Torus([-50.0, 45.0, 505.0], 28.0, 10.0),
+        S.Cone([0.0, 5.0, 520.0], 30.0, 100.0, rotation=np.diag([1.0, -1.0, -1.0])),
+    ]
+    return S.SDFScene(objs, albedo=[0.6, 0.8, 0.7, 0.75, 0.65, 0.85])
+
+
+def standard_rig(width: int = 96, height: int = 72, proj_width: int = 256, proj_height: int = 192,
+                 baseline_mm: float = 150.0, gl_trap: bool = False) -> StructuredLightRig:
+    """Camera at the origin looking +z (FOV 40 deg) and a projector ``baseline_mm`` to its right,
+    aimed at (0, 0, 470) mm (OpenCV pose from :func:`fsjax.render.look_at`, FOV 36 deg).
+
+    ``gl_trap=True`` returns the rig whose projector pose was converted to the GL convention
+    and then used as if it were OpenCV (the mistake the convention rule guards against).
+    """
+    from ...render.camera import gl_from_cv_pose, intrinsics_from_fov, look_at
+
+    K = intrinsics_from_fov(width, height, fov_x_deg=40.0)
+    cam = Camera(K, width=width, height=height)
+    R, t = look_at([baseline_mm, 0.0, 0.0], [0.0, 0.0, 470.0], up=[0.0, -1.0, 0.0])
+    if gl_trap:
+        R, t = gl_from_cv_pose(R, t)
+    Kp = intrinsics_from_fov(proj_width, proj_height, fov_x_deg=36.0)
+    return StructuredLightRig(cam, Camera(Kp, width=proj_width, height=proj_height, R=R, t=t))
+
+
+def capture_geometry(scene, rig: StructuredLightRig) -> dict:
+    """Trace the camera rays, find where each hit lands in the projector and whether the projector
+    sees it. Returns numpy ``depth``, ``hit``, ``u_p`` (projector column), ``lit`` (visible from
+    the projector and inside its image), ``radiance`` (albedo times the projector's cosine)."""
+    from ...render.camera import project
+    from ...render.sdf import _soft_shadow, render_sdf
+
+    cam, proj = rig.camera, rig.projector
+    out = render_sdf(scene, cam, t_max=1500.0, max_steps=300, ao_samples=1)
+    X = out.position
+    uv, zp = project(proj, jnp.where(out.hit[..., None], X, 0.0))
+    to_p = proj.t - X
+    dist = jnp.linalg.norm(to_p, axis=-1)
+    ldir = to_p / dist[..., None]
+
+    def vis(p, n, ld, tm):
+        ok = jnp.all(jnp.isfinite(p))
+        p = jnp.where(ok, p, 0.0)
+        n = jnp.where(ok, n, jnp.asarray([0.0, 0.0, -1.0]))
+        ld = jnp.where(ok, ld, jnp.asarray([0.0, 0.0, -1.0]))
+        v = _soft_shadow(scene, p + 1e-4 * n, n, ld, math.sin(math.radians(0.005)), 0.5, tm, 300, 0.5)
+        return jnp.where(ok, v, 0.0)
+
+    v = jax.vmap(vis)(X.reshape(-1, 3), out.normal.reshape(-1, 3), ldir.reshape(-1, 3),
+                      jnp.where(jnp.isfinite(dist), dist, 1.0).reshape(-1)).reshape(dist.shape)
+    cosang = jnp.sum(out.normal * ldir, axis=-1)
+    inside = (uv[..., 0] > -0.5) & (uv[..., 0] < proj.width - 0.5) & (uv[..., 1] > -0.5) & \
+             (uv[..., 1] < proj.height - 0.5)
+    lit = out.hit & (v > 0.5) & inside & (cosang > 0.05)
+    g = {k: np.asarray(a) for k, a in dict(depth=out.depth, hit=out.hit, u_p=uv[..., 0], lit=lit,
+                                           radiance=out.albedo * jnp.maximum(cosang, 0.0)).items()}
+    g["n_unconverged"] = int(out.n_unconverged)
+    return g
+
+
+def capture_patterns(geom: dict, *, n_shift: int = 8, period_px: float = 8.0, n_code_bits: int = 5,
+                     n_full_bits: int = 8, phase_offset_periods: float = 0.0, noise: float = 0.002,
+                     ambient: float = 0.05, seed: int = 0) -> dict:
+    """Synthesise the captured frames from :func:`capture_geometry`.
+
+    Intensity ``I = ambient rho + radiance pattern(u_p) + noise`` (pattern in [0, 1], 0 where the
+    projector does not reach). Returns ``fringes`` (:class:`FringeStack`), ``code``
+    (``n_code_bits`` Gray bits of period-wide stripes), ``code_shifted`` (one more bit,
+    half-period stripes), ``code_full`` (``n_full_bits`` bits down to single projector pixels,
+    the Gray-only null). ``phase_offset_periods`` shifts the fringes against the code (a
+    misregistration, in periods) to pin the quarter-period breakdown.
+    """
+    rng = np.random.default_rng(seed)
+    u = np.where(geom["lit"], geom["u_p"], 0.0) + 0.5
+    rad = np.where(geom["lit"], geom["radiance"], 0.0)
+    base = ambient * np.where(geom["hit"], 0.7, 0.0)
+
+    def shot(pattern):
+        return base + rad * pattern + noise * rng.standard_normal(u.shape)
+
+    phi = 2 * np.pi * (u / period_px + phase_offset_periods) - np.pi
+    fr = np.stack([shot(0.5 + 0.5 * np.cos(phi - 2 * np.pi * k / n_shift)) for k in range(n_shift)])
+
+    def gray(width_px, n_bits):
+        code = np.floor(u / width_px).astype(np.int64)
+        pats = gray_frames(code, n_bits, high=1.0, low=0.0)
+        return np.stack([shot(p) for p in pats])
+
+    W_full = 2.0 ** np.ceil(np.log2(np.max(u) + 1))
+    return dict(fringes=FringeStack(jnp.asarray(fr)), code=GrayStack(jnp.asarray(gray(period_px, n_code_bits))),
+                code_shifted=GrayStack(jnp.asarray(gray(period_px / 2, n_code_bits + 1))),
+                code_full=GrayStack(jnp.asarray(gray(W_full / 2 ** n_full_bits, n_full_bits))),
+                full_stripe_px=float(W_full / 2 ** n_full_bits), period_px=period_px)
+
+
+def decode_depth(frames: dict, rig: StructuredLightRig, *, min_contrast: float = 0.02) -> dict:
+    """The full pipeline and its two nulls, as depth maps (numpy) plus the decoded indices.
+
+    ``depth``: wrapped phase + complementary Gray code; ``depth_gray``: Gray code alone (column
+    at the centre of the finest stripe); ``depth_phase``: phase alone (period index 0).
+    """
+    P = frames["period_px"]
+    phi = wrapped_phase(frames["fringes"])
+    k1 = graycode_decode(frames["code"], min_contrast=min_contrast)
+    k2 = graycode_decode(frames["code_shifted"], min_contrast=min_contrast)
+    ab = absolute_phase(phi, k1, k2)
+    col = Image(jnp.nan_to_num(ab.data * P / (2 * jnp.pi) - 0.5, nan=-1e6))
+    kf = graycode_decode(frames["code_full"], min_contrast=min_contrast)
+    w = frames["full_stripe_px"]
+    col_g = Image(jnp.where(kf.data >= 0, (kf.data + 0.5) * w - 0.5, -1e6))
+    col_p = Image((phi.data + jnp.pi) * P / (2 * jnp.pi) - 0.5)
+    bad = np.isnan(np.asarray(ab.data))
+    z = np.array(triangulate_column(col, rig).z)
+    z[bad] = np.nan
+    zg = np.array(triangulate_column(col_g, rig).z)
+    zg[np.asarray(kf.data) < 0] = np.nan
+    zp = np.asarray(triangulate_column(col_p, rig).z)
+    column = np.where(bad, np.nan, np.asarray(col.data))
+    return dict(depth=z, depth_gray=zg, depth_phase=zp, column=column, k1=np.asarray(k1.data))
