@@ -19,6 +19,7 @@ from .image._frequency import *  # noqa: F403
 from .image._geometry import *  # noqa: F403
 from .measure2d._label import *  # noqa: F403
 from .matching._correlation import *  # noqa: F403
+from .matching._shape import *  # noqa: F403
 from .measure2d._measure import *  # noqa: F403
 from .image._morphology import *  # noqa: F403
 from .measure3d._photometric import *  # noqa: F403

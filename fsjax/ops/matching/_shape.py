@@ -27,7 +27,7 @@ import numpy as np
 from ...registry import LinKnob, LogKnob, register
 from ...types import Image, Match, is_concrete
 from .._common import check_range, check_static_int
-from ._correlation import _check_pair, _dedupe, _dtype, _fill_match, _greedy_peaks
+from ._shared import _check_pair, _dedupe, _dtype, _fill_match, _greedy_peaks
 
 __all__ = ["shape_locate"]
 
