@@ -4,34 +4,43 @@ Each family module lists its public ops in ``__all__`` (the one export list);
 importing this package registers every op.
 """
 
+# Sorts that op modules defined before they moved home to fsjax.types (same objects; the
+# canonical path is fsjax.types.<Sort>).
+from ..types import FringeStack as FringeStack
+from ..types import GrayStack as GrayStack
+from ..types import LightStack as LightStack
+from ..types import NormalMap as NormalMap
+from ..types import PointLabels as PointLabels
+from ..types import PointValues as PointValues
+from ..types import StructuredLightRig as StructuredLightRig
 from .image._binary import *  # noqa: F403
-from .measure2d._caliper import *  # noqa: F403
-from .measure3d._camera import *  # noqa: F403
 from .image._color import *  # noqa: F403
-from .measure2d._contours import *  # noqa: F403
 from .image._distance import *  # noqa: F403
 from .image._edges import *  # noqa: F403
 from .image._edges_canny import *  # noqa: F403
 from .image._features import *  # noqa: F403
 from .image._filters import *  # noqa: F403
-from .measure2d._fit2d import *  # noqa: F403
 from .image._frequency import *  # noqa: F403
 from .image._geometry import *  # noqa: F403
-from .measure2d._label import *  # noqa: F403
-from .matching._correlation import *  # noqa: F403
-from .matching._shape import *  # noqa: F403
-from .measure2d._measure import *  # noqa: F403
 from .image._morphology import *  # noqa: F403
-from .measure3d._photometric import *  # noqa: F403
 from .image._pixelwise import *  # noqa: F403
-from .points._cloud import *  # noqa: F403
-from .points._curvature import *  # noqa: F403
-from .points._segment import *  # noqa: F403
-from .points._search import *  # noqa: F403
-from .measure3d._render import *  # noqa: F403
-from .measure2d._segment import *  # noqa: F403
 from .image._skeleton import *  # noqa: F403
-from .measure3d._structured_light import *  # noqa: F403
 from .image._threshold import *  # noqa: F403
 from .image._threshold_local import *  # noqa: F403
+from .matching._correlation import *  # noqa: F403
+from .matching._shape import *  # noqa: F403
+from .measure2d._caliper import *  # noqa: F403
+from .measure2d._contours import *  # noqa: F403
+from .measure2d._fit2d import *  # noqa: F403
+from .measure2d._label import *  # noqa: F403
+from .measure2d._measure import *  # noqa: F403
+from .measure2d._segment import *  # noqa: F403
+from .measure3d._camera import *  # noqa: F403
+from .measure3d._photometric import *  # noqa: F403
+from .measure3d._render import *  # noqa: F403
+from .measure3d._structured_light import *  # noqa: F403
 from .measure3d._tomography import *  # noqa: F403
+from .points._cloud import *  # noqa: F403
+from .points._curvature import *  # noqa: F403
+from .points._search import *  # noqa: F403
+from .points._segment import *  # noqa: F403

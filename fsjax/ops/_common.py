@@ -1,5 +1,6 @@
-"""Shared helpers for op families: boundary handling, separable correlation,
-dtype-keyed epsilons. Argument checks live in :mod:`fsjax._checks` (one message
+"""Op-only helpers shared by the op families: boundary modes and padding, separable
+correlation, dtype-keyed epsilons and float dtypes, kernel-extent guards. Argument
+checks are not here: op modules import them from :mod:`fsjax._checks` (one message
 style for ops, fits and renderers).
 
 Boundary modes use SciPy's names (``scipy.ndimage``), so conformance tests can
@@ -28,14 +29,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import (  # noqa: F401  (re-exported for the op modules)
-    _concrete_float,
-    check_choice,
-    check_positive,
-    check_range,
-    check_static_int,
-    is_concrete,
-)
+from .._checks import is_concrete
 
 MODES = ("reflect", "mirror", "nearest", "wrap", "constant")
 UNROLL_TAPS = 129  # correlate1d unrolls kernels up to this many taps, loops over longer ones

@@ -13,7 +13,31 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from ..types import Camera, Color, Depth, Feature, Image, Labels, Mesh, Points, Region, Signal, Sort, Volume
+from ..types import (
+    HSV,
+    Camera,
+    Color,
+    Contour,
+    Depth,
+    Feature,
+    FringeStack,
+    GrayStack,
+    Image,
+    Lab,
+    Labels,
+    LightStack,
+    Mesh,
+    NormalMap,
+    PointLabels,
+    Points,
+    PointValues,
+    Region,
+    RegionProps,
+    Signal,
+    Sort,
+    StructuredLightRig,
+    Volume,
+)
 
 _POOL: dict[type, Callable[[int, tuple[int, int]], Sort]] = {}
 
@@ -102,6 +126,48 @@ def _signal(variant, size):
     return Signal(jnp.asarray(g[size[0] // 2, :w]))
 
 
+@register_pool(HSV)
+def _hsv(variant, size):
+    """The colour pool converted by ``fsjax.ops.rgb_to_hsv``."""
+    from ..ops import rgb_to_hsv
+
+    return rgb_to_hsv(standard_input(Color, variant, size))
+
+
+@register_pool(Lab)
+def _lab(variant, size):
+    """The colour pool converted by ``fsjax.ops.rgb_to_lab``."""
+    from ..ops import rgb_to_lab
+
+    return rgb_to_lab(standard_input(Color, variant, size))
+
+
+@register_pool(Contour)
+def _contour_pool(variant, size):
+    """A closed, ordered polyline on an ellipse (about 1 px spacing) plus 4 unused slots."""
+    h, w = size
+    n = 40
+    t = np.arange(n) * 2 * np.pi / n
+    a, b = 0.3 * min(h, w), 0.2 * min(h, w)
+    ang = 0.35 + 0.5 * variant
+    rng = np.random.default_rng(77 + variant)
+    u, v = a * np.cos(t), b * np.sin(t)
+    col = w / 2 + 0.4 * variant + u * np.cos(ang) - v * np.sin(ang)
+    row = h / 2 - u * np.sin(ang) - v * np.cos(ang)
+    pts = np.stack([row, col], -1) + 0.05 * rng.standard_normal((n, 2))
+    pts = np.concatenate([pts, np.zeros((4, 2))])
+    valid = np.arange(n + 4) < n
+    return Contour(jnp.asarray(pts), jnp.asarray(valid), closed=True)
+
+
+@register_pool(RegionProps)
+def _region_props(variant, size):
+    """``fsjax.ops.region_props`` of the label pool over the image pool (capacity 4)."""
+    from ..ops import region_props
+
+    return region_props(standard_input(Labels, variant, size), standard_input(Image, variant, size), capacity=4)
+
+
 # ---------------------------------------------------------------------------
 # 3-D sorts. ``size`` is ignored: these inputs have fixed small sizes.
 # ---------------------------------------------------------------------------
@@ -179,3 +245,98 @@ def _depth(variant, size):
     cam = _camera(variant, size)
     r, c = np.mgrid[0:24, 0:32].astype(float)
     return Depth(jnp.asarray(4.0 + 0.02 * c + 0.01 * r + 0.5 * variant), cam)
+
+
+
+# ---------------------------------------------------------------------------
+# Sorts of the 3-D measurement families (photometric stereo, structured light)
+# and per-point results of the point-cloud families.
+# ---------------------------------------------------------------------------
+
+
+def _sphere_cap(h, w, variant):
+    """Analytic normals/albedo of a sphere cap filling the frame (for the pool)."""
+    r, c = np.mgrid[0:h, 0:w].astype(float)
+    x = (c - (w - 1) / 2 - variant) / (0.9 * w)
+    y = (r - (h - 1) / 2) / (0.9 * w)
+    z = np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))
+    n = np.stack([x, y, -z], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    alb = 0.5 + 0.3 * (c / w) + 0.1 * variant
+    return n, alb
+
+
+@register_pool(LightStack)
+def _pool_lightstack(variant, size):
+    """A Lambertian sphere cap (albedo ramp) under 6 lights at 50-70 deg elevation (no shadows)."""
+    from ..ops import light_directions
+
+    h, w = size
+    n, alb = _sphere_cap(h, w, variant)
+    L = light_directions([50, 60, 70, 50, 60, 70], [0, 60, 120, 180, 240, 300 + 10 * variant])
+    data = alb[None] * np.maximum(np.einsum("hwc,kc->khw", n, L), 0.0)
+    return LightStack(jnp.asarray(data), jnp.asarray(L))
+
+
+@register_pool(NormalMap)
+def _pool_normalmap(variant, size):
+    """Normals and albedo of the pool's sphere cap (all valid)."""
+    n, alb = _sphere_cap(*size, variant)
+    return NormalMap(jnp.asarray(n), jnp.asarray(alb))
+
+
+def _fringe_pool(variant, size):
+    h, w = size
+    r, c = np.mgrid[0:h, 0:w].astype(float)
+    phi = 0.3 * c + 0.1 * r + 0.2 * variant - 3.0
+    n = 4
+    k = np.arange(n)[:, None, None]
+    return 0.5 + 0.4 * np.cos(phi[None] - 2 * np.pi * k / n)
+
+
+@register_pool(FringeStack)
+def _pool_fringe(variant, size):
+    """4-step fringes of a phase ramp ``0.3 col + 0.1 row - 3``, contrast 0.4."""
+    return FringeStack(jnp.asarray(_fringe_pool(variant, size)))
+
+
+@register_pool(GrayStack)
+def _pool_gray(variant, size):
+    """4-bit complementary Gray code of stripes 2 columns wide."""
+    from ..ops import gray_frames
+
+    h, w = size
+    c = np.broadcast_to(np.arange(w), (h, w))
+    return GrayStack(jnp.asarray(gray_frames((c + variant) // 2 % 16, 4)))
+
+
+@register_pool(StructuredLightRig)
+def _pool_rig(variant, size):
+    """Camera 32 x 24 at the origin looking +z; 64-column projector 100 mm to the right, aimed at z = 500 mm."""
+    from ..render.camera import look_at
+
+    cam = Camera.from_intrinsics(40.0, 40.0, 15.5, 11.5, width=32, height=24)
+    R, t = look_at([100.0 + 10.0 * variant, 0.0, 0.0], [0.0, 0.0, 500.0], up=[0.0, -1.0, 0.0])
+    proj = Camera.from_intrinsics(80.0, 80.0, 31.5, 23.5, width=64, height=48, R=R, t=t)
+    return StructuredLightRig(cam, proj)
+
+
+@register_pool(PointValues)
+def _point_values(variant, size):
+    """Two columns over 16 points (variant 1 shifted); the last slot invalid."""
+    v = np.stack([np.linspace(0.0, 1.0, 16), np.linspace(1.0, 2.0, 16) ** 2], -1) + 0.5 * variant
+    valid = np.ones(16, bool)
+    valid[-1] = False
+    return PointValues(jnp.asarray(v), ("a", "b"), jnp.asarray(valid))
+
+
+@register_pool(PointLabels)
+def _point_labels(variant, size):
+    """Three clusters over 24 points (variant 1: relabelled), last slot invalid."""
+    lab = np.repeat(np.arange(1, 4, dtype=np.int32), 8)
+    if variant:
+        lab = lab[::-1].copy()
+    valid = np.ones(24, bool)
+    valid[-1] = False
+    lab[-1] = 0
+    return PointLabels(jnp.asarray(lab), jnp.asarray(valid), count=3)

@@ -14,7 +14,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._base import Sort, _as_array, is_concrete
 
-__all__ = ["Contour", "Points", "Mesh", "Gaussians", "Camera", "Depth"]
+__all__ = ["Contour", "Points", "Mesh", "Gaussians", "Camera", "Depth", "PointValues", "PointLabels",
+           "StructuredLightRig"]
 
 
 class Contour(Sort):
@@ -238,3 +239,91 @@ class Depth(Sort):
     @property
     def batch_shape(self) -> tuple[int, ...]:
         return tuple(self.z.shape[:-2])
+
+
+# ---------------------------------------------------------------------------
+# per-point results of the point-cloud families; the structured-light camera/projector pair
+# ---------------------------------------------------------------------------
+
+
+class PointValues(Sort):
+    """Per-point values of a cloud: ``values`` ``(*batch, N, C)`` with named columns.
+
+    ``names`` (static) names the ``C`` columns; ``valid`` ``(*batch, N)`` is the
+    cloud's mask (invalid rows hold NaN). ``pv["curvedness"]`` returns a column.
+    """
+
+    values: Float[Array, "*batch N C"]
+    valid: Bool[Array, "*batch N"]
+    names: tuple[str, ...] = eqx.field(static=True, default=())
+    _float_fields = ()  # NaN marks a value that could not be measured
+
+    def __init__(self, values: Any, names: tuple[str, ...], valid: Any = None):
+        self.values = _as_array(values, sort="PointValues", field="values", kind="float", min_ndim=2)
+        self.names = tuple(str(n) for n in names)
+        if len(self.names) != self.values.shape[-1]:
+            raise ValueError(f"PointValues(names=...): {len(self.names)} names for {self.values.shape[-1]} columns")
+        if valid is None:
+            valid = jnp.ones(self.values.shape[:-1], dtype=bool)
+        self.valid = _as_array(valid, sort="PointValues", field="valid", kind="bool", min_ndim=1)
+        if self.valid.shape != self.values.shape[:-1]:
+            raise ValueError(f"PointValues(valid=...): shape {self.valid.shape} does not match values "
+                             f"{self.values.shape[:-1]}")
+
+    def __getitem__(self, name: str) -> Array:
+        if name not in self.names:
+            raise KeyError(f"PointValues: no column {name!r}; columns: {', '.join(self.names)}")
+        return self.values[..., self.names.index(name)]
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.values.shape[:-2])
+
+
+class PointLabels(Sort):
+    """Per-point cluster labels: ``labels`` ``(*batch, N)`` int32, 0 = none, ``1..count``.
+
+    ``valid`` is the cloud's mask, ``count`` the number of clusters,
+    ``truncated`` True when the cluster capacity or a neighbour capacity was
+    exceeded.
+    """
+
+    labels: Int[Array, "*batch N"]
+    valid: Bool[Array, "*batch N"]
+    count: Int[Array, "*batch"]
+    truncated: Bool[Array, "*batch"]
+
+    def __init__(self, labels: Any, valid: Any = None, count: Any = None, truncated: Any = False):
+        self.labels = _as_array(labels, sort="PointLabels", field="labels", kind="int", min_ndim=1)
+        if valid is None:
+            valid = jnp.ones(self.labels.shape, dtype=bool)
+        self.valid = _as_array(valid, sort="PointLabels", field="valid", kind="bool", min_ndim=1)
+        if self.valid.shape != self.labels.shape:
+            raise ValueError(f"PointLabels(valid=...): shape {self.valid.shape} does not match labels "
+                             f"{self.labels.shape}")
+        if count is None:
+            count = np.max(np.asarray(self.labels), axis=-1, initial=0)
+        self.count = jnp.asarray(count, dtype=jnp.int32)
+        self.truncated = jnp.asarray(truncated, dtype=bool)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.labels.shape[:-1])
+
+
+class StructuredLightRig(Sort):
+    """A capturing ``camera`` and a ``projector`` (both :class:`fsjax.Camera`, OpenCV frame)."""
+
+    camera: Camera
+    projector: Camera
+    _float_fields = ()
+
+    def __init__(self, camera: Camera, projector: Camera):
+        for name, c in (("camera", camera), ("projector", projector)):
+            if not isinstance(c, Camera):
+                raise TypeError(f"StructuredLightRig({name}=...): expected a Camera, got {type(c).__name__}")
+        self.camera, self.projector = camera, projector
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return self.camera.batch_shape

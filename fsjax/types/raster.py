@@ -1,4 +1,5 @@
-"""2-D and 3-D rasters: grey, colour and label images, 1-D signals, voxel volumes.
+"""2-D and 3-D rasters: grey, colour and label images, 1-D signals, voxel volumes, and the image
+stacks and normal maps of photometric stereo and structured light.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._base import Sort, _as_array, _from_uint, is_concrete
 
-__all__ = ["Image", "Color", "HSV", "Lab", "Region", "Labels", "Signal", "Volume"]
+__all__ = ["Image", "Color", "HSV", "Lab", "Region", "Labels", "Signal", "Volume", "LightStack", "NormalMap",
+           "FringeStack", "GrayStack"]
 
 
 class Image(Sort):
@@ -198,6 +200,90 @@ class Volume(Sort):
             raise ValueError(f"Volume(spacing=...): expected three positive numbers (dz, dy, dx), got {spacing}")
         self.spacing = sp
         self.unit = unit
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.data.shape[:-3])
+
+
+# ---------------------------------------------------------------------------
+# image stacks and maps of the 3-D measurement families (photometric stereo, structured light);
+# conventions in fsjax.ops.measure3d (camera frame: OpenCV, x right, y down, z forward)
+# ---------------------------------------------------------------------------
+
+
+class LightStack(Sort):
+    """``K`` images ``data (*batch, K, H, W)`` under distant lights ``lights (*batch, K, 3)``.
+
+    ``lights`` are unit directions towards the lights in the camera frame (normalised on
+    construction; a zero-length direction is refused).
+    """
+
+    data: Float[Array, "*batch K H W"]
+    lights: Float[Array, "*batch K 3"]
+    _float_fields = ("data", "lights")
+
+    def __init__(self, data: Any, lights: Any):
+        self.data = _as_array(data, sort="LightStack", field="data", kind="float", min_ndim=3)
+        lights = _as_array(lights, sort="LightStack", field="lights", kind="float", min_ndim=2, trailing=(3,))
+        if lights.shape[-2] != self.data.shape[-3]:
+            raise ValueError(f"LightStack(lights=...): {lights.shape[-2]} lights for {self.data.shape[-3]} images")
+        nn = jnp.linalg.norm(lights, axis=-1, keepdims=True)
+        if is_concrete(nn) and not bool(np.all(np.asarray(nn) > 0)):
+            raise ValueError("LightStack(lights=...): a light direction has zero length")
+        self.lights = lights / jnp.where(nn > 0, nn, jnp.nan)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.data.shape[:-3])
+
+
+class NormalMap(Sort):
+    """Unit normals ``(*batch, H, W, 3)`` (camera frame), ``albedo (*batch, H, W)``, ``valid (*batch, H, W)``."""
+
+    normals: Float[Array, "*batch H W 3"]
+    albedo: Float[Array, "*batch H W"]
+    valid: Bool[Array, "*batch H W"]
+    _float_fields = ()
+
+    def __init__(self, normals: Any, albedo: Any, valid: Any = None):
+        self.normals = _as_array(normals, sort="NormalMap", field="normals", kind="float", min_ndim=3, trailing=(3,))
+        self.albedo = _as_array(albedo, sort="NormalMap", field="albedo", kind="float", min_ndim=2)
+        if self.albedo.shape != self.normals.shape[:-1]:
+            raise ValueError(f"NormalMap(albedo=...): shape {self.albedo.shape} does not match normals "
+                             f"{self.normals.shape[:-1]}")
+        v = jnp.isfinite(self.albedo) if valid is None else valid
+        self.valid = _as_array(v, sort="NormalMap", field="valid", kind="bool", min_ndim=2)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.albedo.shape[:-2])
+
+
+class FringeStack(Sort):
+    """``N >= 3`` phase-shifted fringe images ``data (*batch, N, H, W)``, shifts ``2 pi k / N``."""
+
+    data: Float[Array, "*batch N H W"]
+    _float_fields = ("data",)
+
+    def __init__(self, data: Any):
+        self.data = _as_array(data, sort="FringeStack", field="data", kind="float", min_ndim=3)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.data.shape[:-3])
+
+
+class GrayStack(Sort):
+    """``2 n`` Gray-code frames ``data (*batch, 2n, H, W)``: bit pattern then its inverse, MSB first."""
+
+    data: Float[Array, "*batch F H W"]
+    _float_fields = ("data",)
+
+    def __init__(self, data: Any):
+        self.data = _as_array(data, sort="GrayStack", field="data", kind="float", min_ndim=3)
+        if self.data.shape[-3] % 2:
+            raise ValueError(f"GrayStack(data=...): needs pattern/inverse pairs, got {self.data.shape[-3]} frames")
 
     @property
     def batch_shape(self) -> tuple[int, ...]:

@@ -12,8 +12,8 @@ from fsjax.ops.measure3d import _photometric as P
 
 SIZE = dict(width=64, height=48, pixel_size=0.1)
 # 8 lights; steep ones leave no shadow on this still life (checked), low ones cast shadows
-HIGH = P.light_directions([66, 70, 74, 78, 66, 70, 74, 78], [0, 45, 90, 135, 180, 225, 270, 315])
-LOW = P.light_directions([30, 35, 40, 45, 30, 35, 40, 45], [0, 45, 90, 135, 180, 225, 270, 315])
+HIGH = fsjax.ops.light_directions([66, 70, 74, 78, 66, 70, 74, 78], [0, 45, 90, 135, 180, 225, 270, 315])
+LOW = fsjax.ops.light_directions([30, 35, 40, 45, 30, 35, 40, 45], [0, 45, 90, 135, 180, 225, 270, 315])
 
 
 @pytest.fixture(scope="module")
@@ -73,12 +73,12 @@ def test_shadows_bias_least_squares_not_robust(shadowed):
 
 def test_two_lit_lights_use_the_inequalities():
     """With exactly two lit lights the shadowed inequalities pick the solution (min-norm QP)."""
-    L = P.light_directions([40, 40, 40, 40, 40], [0, 90, 180, 225, 300])
+    L = fsjax.ops.light_directions([40, 40, 40, 40, 40], [0, 90, 180, 225, 300])
     n = np.array([0.7, 0.7, -0.15])
     n /= np.linalg.norm(n)
     meas = 0.6 * np.maximum(L @ n, 0)
     lit = meas > 0.02
-    st = P.LightStack(jnp.asarray(meas[:, None, None]), jnp.asarray(L))
+    st = fsjax.types.LightStack(jnp.asarray(meas[:, None, None]), jnp.asarray(L))
     nm = fsjax.ops.photometric_stereo(st, shadow_threshold=0.02)
     b = np.asarray(nm.normals[0, 0]) * float(nm.albedo[0, 0])
     print(f"two lit lights ({lit.sum()} of 5): equalities residual {np.max(np.abs(L[lit] @ b - meas[lit])):.1e}, "
@@ -88,7 +88,7 @@ def test_two_lit_lights_use_the_inequalities():
     assert np.max(L[~lit] @ b) <= 0.02 + 1e-12 and b[2] <= 0
     # one lit light (or none): too little to solve, fails closed
     one = np.where(np.arange(5) == 0, meas, 0.0)
-    nm1 = fsjax.ops.photometric_stereo(P.LightStack(jnp.asarray(one[:, None, None]), jnp.asarray(L)))
+    nm1 = fsjax.ops.photometric_stereo(fsjax.types.LightStack(jnp.asarray(one[:, None, None]), jnp.asarray(L)))
     assert not bool(nm1.valid[0, 0]) and np.isnan(float(nm1.albedo[0, 0]))
 
 
@@ -96,7 +96,7 @@ def test_relight_from_recovered_normals(unshadowed, scene):
     stack, tr = unshadowed
     nm = fsjax.ops.photometric_stereo(stack)
     az, el = 20.0, 68.0
-    new = P.light_directions(el, az)[None]
+    new = fsjax.ops.light_directions(el, az)[None]
     ref, _ = P.render_light_stack(scene, new, shadows=False, **SIZE)
     got = fsjax.ops.relight(nm, azimuth_deg=az, elevation_deg=el).data
     rmse = float(jnp.sqrt(jnp.mean((got - ref.data[0]) ** 2)))
@@ -107,7 +107,7 @@ def test_relight_from_recovered_normals(unshadowed, scene):
 
 def test_frankot_chellappa_height_vs_truth(unshadowed):
     _, tr = unshadowed
-    nm = P.NormalMap(tr["normals"], tr["albedo"])
+    nm = fsjax.types.NormalMap(tr["normals"], tr["albedo"])
     z = np.asarray(fsjax.ops.frankot_chellappa(nm, pixel_size=SIZE["pixel_size"]).data)
     d = np.asarray(tr["depth"])
     d = d - d.mean()
@@ -132,16 +132,16 @@ def test_highlight_breakdown_median_fails_at_half(unshadowed):
 
 
 def test_bad_input():
-    st = fsjax.synth.standard_input(P.LightStack)
+    st = fsjax.synth.standard_input(fsjax.types.LightStack)
     with pytest.raises(ValueError, match="photometric_stereo.*method"):
         fsjax.ops.photometric_stereo(st, method="svd")
     with pytest.raises(ValueError, match="photometric_stereo.*shadow_threshold"):
         fsjax.ops.photometric_stereo(st, shadow_threshold=-0.1)
     with pytest.raises(ValueError, match="photometric_stereo.*3 lights"):
-        fsjax.ops.photometric_stereo(P.LightStack(st.data[:2], st.lights[:2]))
+        fsjax.ops.photometric_stereo(fsjax.types.LightStack(st.data[:2], st.lights[:2]))
     with pytest.raises(ValueError, match="LightStack.*zero length"):
-        P.LightStack(st.data, st.lights.at[0].set(0.0))
+        fsjax.types.LightStack(st.data, st.lights.at[0].set(0.0))
     with pytest.raises(ValueError, match="frankot_chellappa.*pixel_size"):
-        fsjax.ops.frankot_chellappa(fsjax.synth.standard_input(P.NormalMap), pixel_size=0.0)
+        fsjax.ops.frankot_chellappa(fsjax.synth.standard_input(fsjax.types.NormalMap), pixel_size=0.0)
     with pytest.raises(TypeError, match="relight"):
         fsjax.ops.relight(st)

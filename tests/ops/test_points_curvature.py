@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import fsjax
-from fsjax.ops.points._curvature import PointValues
+from fsjax.types import PointValues
 
 
 def fib_sphere(n, r=1.0):

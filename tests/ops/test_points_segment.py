@@ -12,7 +12,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 import fsjax
-from fsjax.ops.points._segment import PointLabels, cluster_centroids
+from fsjax.ops import cluster_centroids
+from fsjax.types import PointLabels
 from fsjax.synth import lidar_scene
 
 

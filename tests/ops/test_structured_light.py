@@ -86,7 +86,7 @@ def test_quarter_period_breakdown_of_unwrapping(geom):
 
 
 def test_triangulate_column_gradient_fd():
-    rig = fsjax.synth.standard_input(SL.StructuredLightRig)
+    rig = fsjax.synth.standard_input(fsjax.types.StructuredLightRig)
     col = fsjax.Image(jnp.full((24, 32), 0.5) + 0.02 * jnp.arange(32.0)[None])
 
     def loss_col(c):
@@ -95,7 +95,7 @@ def test_triangulate_column_gradient_fd():
     def loss_base(b):
         proj = rig.projector
         moved = fsjax.Camera(proj.K, width=proj.width, height=proj.height, R=proj.R, t=proj.t + jnp.asarray([b, 0, 0]))
-        return jnp.nansum(fsjax.ops.triangulate_column(col, SL.StructuredLightRig(rig.camera, moved)).z)
+        return jnp.nansum(fsjax.ops.triangulate_column(col, fsjax.types.StructuredLightRig(rig.camera, moved)).z)
 
     out = []
     for f in (loss_col, loss_base):
@@ -117,14 +117,14 @@ def test_wrapped_phase_and_gray_decode_exact():
     phi = 2 * np.pi * (u + 0.5) / P - np.pi
     N = 5
     fr = np.stack([0.2 + 0.3 * np.cos(phi - 2 * np.pi * k / N) for k in range(N)])
-    wp = np.asarray(fsjax.ops.wrapped_phase(SL.FringeStack(jnp.asarray(fr))).data)
+    wp = np.asarray(fsjax.ops.wrapped_phase(fsjax.types.FringeStack(jnp.asarray(fr))).data)
     err = np.max(np.abs(np.angle(np.exp(1j * (wp - phi)))))
     codes = np.floor((u + 0.5) / P).astype(int)
-    dec = np.asarray(fsjax.ops.graycode_decode(SL.GrayStack(jnp.asarray(SL.gray_frames(codes, 4)))).data)
+    dec = np.asarray(fsjax.ops.graycode_decode(fsjax.types.GrayStack(jnp.asarray(fsjax.ops.gray_frames(codes, 4)))).data)
     print(f"wrapped phase (5 steps) max error {err:.1e} rad; Gray decode of 4 bits: {int(np.sum(dec != codes))} errors")
     assert err < 1e-12 and np.array_equal(dec, codes)
     # zero contrast is undecidable: -1, and absolute_phase fails closed with NaN
-    flat = SL.GrayStack(jnp.full((8, 2, 2), 0.5))
+    flat = fsjax.types.GrayStack(jnp.full((8, 2, 2), 0.5))
     k = fsjax.ops.graycode_decode(flat)
     assert bool(jnp.all(k.data == -1))
     ab = fsjax.ops.absolute_phase(fsjax.Image(jnp.zeros((2, 2))), k, k)
@@ -132,14 +132,14 @@ def test_wrapped_phase_and_gray_decode_exact():
 
 
 def test_bad_input():
-    rig = fsjax.synth.standard_input(SL.StructuredLightRig)
+    rig = fsjax.synth.standard_input(fsjax.types.StructuredLightRig)
     with pytest.raises(ValueError, match="wrapped_phase.*3 frames"):
-        fsjax.ops.wrapped_phase(SL.FringeStack(jnp.zeros((2, 4, 4))))
+        fsjax.ops.wrapped_phase(fsjax.types.FringeStack(jnp.zeros((2, 4, 4))))
     with pytest.raises(ValueError, match="GrayStack"):
-        SL.GrayStack(jnp.zeros((3, 4, 4)))
+        fsjax.types.GrayStack(jnp.zeros((3, 4, 4)))
     with pytest.raises(ValueError, match="graycode_decode.*min_contrast"):
-        fsjax.ops.graycode_decode(fsjax.synth.standard_input(SL.GrayStack), min_contrast=-1.0)
+        fsjax.ops.graycode_decode(fsjax.synth.standard_input(fsjax.types.GrayStack), min_contrast=-1.0)
     with pytest.raises(ValueError, match="triangulate_column.*column"):
         fsjax.ops.triangulate_column(fsjax.Image(jnp.zeros((5, 5))), rig)
     with pytest.raises(TypeError, match="StructuredLightRig"):
-        SL.StructuredLightRig(rig.camera, jnp.zeros(3))
+        fsjax.types.StructuredLightRig(rig.camera, jnp.zeros(3))

@@ -47,9 +47,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ..._checks import check_choice
 from ...registry import IntKnob, register
 from ...types import Region
-from .._common import check_choice
 from ._morphology import _check_common, flat_morph
 
 __all__ = [

@@ -30,10 +30,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from ..._checks import check_positive, check_range
 from ...registry import IntKnob, LinKnob, LogKnob, register
-from ...synth._pool import register_pool, standard_input
 from ...types import HSV, Color, Image, Lab, is_concrete
-from .._common import check_positive, check_range
 
 __all__ = [
     "rgb_to_grey",
@@ -521,18 +520,3 @@ def color_channel(img: Color, /, *, channel: int = 0) -> Image:
     x = img.data
     ch = jnp.asarray(channel)
     return Image(jnp.where(ch == 0, x[..., 0], jnp.where(ch == 1, x[..., 1], x[..., 2])))
-
-
-# ---------------------------------------------------------------------------
-# Standard inputs for the HSV and Lab sorts
-# ---------------------------------------------------------------------------
-
-
-@register_pool(HSV)
-def _hsv_pool(variant, size):
-    return HSV(_rgb_to_hsv(standard_input(Color, variant, size).data))
-
-
-@register_pool(Lab)
-def _lab_pool(variant, size):
-    return Lab(_rgb_to_lab(standard_input(Color, variant, size).data))

@@ -31,9 +31,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ..._checks import check_choice, check_positive
 from ...registry import register
 from ...types import Image, Region
-from .._common import check_choice, check_positive
 
 __all__ = ["distance_transform"]
 

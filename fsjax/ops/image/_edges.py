@@ -41,17 +41,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ..._checks import check_choice, check_positive, check_range
 from ...registry import LinKnob, LogKnob, register
 from ...types import Image, is_concrete
-from .._common import (
-    check_choice,
-    check_kernel_extent,
-    check_mode,
-    check_positive,
-    check_range,
-    correlate1d,
-    support_exceeded,
-)
+from .._common import check_kernel_extent, check_mode, correlate1d, support_exceeded
 from ._filters import _gaussian_radius, gaussian_weights
 
 __all__ = [

@@ -12,9 +12,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ..._checks import check_range
 from ...registry import LogKnob, poison, register
 from ...types import Image, Region
-from .._common import check_range, support_exceeded
+from .._common import support_exceeded
 from ._edges import (
     _SMALL_SIGMA_KNOB,
     _check_sigma,

@@ -31,9 +31,10 @@ import math
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ..._checks import check_choice, check_positive, check_range
 from ...registry import LinKnob, register
 from ...types import Feature, Image, is_concrete
-from .._common import check_choice, check_mode, check_positive, check_range, correlate1d
+from .._common import check_mode, correlate1d
 from ._filters import gaussian_weights
 
 __all__ = [

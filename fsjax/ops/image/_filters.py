@@ -35,19 +35,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._checks import check_choice, check_positive, check_range, check_static_int
 from ...registry import IntKnob, LinKnob, LogKnob, register
 from ...types import Image, is_concrete
-from .._common import (
-    check_choice,
-    check_kernel_extent,
-    check_mode,
-    check_positive,
-    check_range,
-    check_static_int,
-    correlate1d,
-    pad2d,
-    support_exceeded,
-)
+from .._common import check_kernel_extent, check_mode, correlate1d, pad2d, support_exceeded
 
 __all__ = [
     "gaussian",

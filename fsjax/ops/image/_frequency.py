@@ -63,18 +63,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._checks import check_choice, check_positive, check_range, check_static_int
 from ...registry import LinKnob, LogKnob, register
 from ...types import Image
-from .._common import (
-    check_choice,
-    check_mode,
-    check_positive,
-    check_range,
-    check_static_int,
-    eps,
-    float_dtype,
-    pad2d,
-)
+from .._common import check_mode, eps, float_dtype, pad2d
 
 __all__ = [
     "fft_magnitude",

@@ -67,17 +67,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ..._checks import check_choice, check_positive, check_range, check_static_int
 from ...registry import LinKnob, LogKnob, register
 from ...types import Image, is_concrete
-from .._common import (
-    check_choice,
-    check_positive,
-    check_range,
-    check_static_int,
-    correlate1d,
-    eps,
-    float_dtype,
-)
+from .._common import correlate1d, eps, float_dtype
 from ._filters import gaussian_weights
 
 __all__ = ["mirror", "translate", "rotate", "zoom", "shear", "affine_warp", "resize"]

@@ -45,17 +45,10 @@ import math
 import jax.numpy as jnp
 from jax import lax
 
+from ..._checks import check_choice, check_range, check_static_int
 from ...registry import IntKnob, register
 from ...types import Image, is_concrete
-from .._common import (
-    check_choice,
-    check_kernel_extent,
-    check_mode,
-    check_range,
-    check_static_int,
-    pad2d,
-    pad_axis,
-)
+from .._common import check_kernel_extent, check_mode, pad2d, pad_axis
 
 __all__ = ["erosion", "dilation", "opening", "closing", "top_hat", "bottom_hat", "morph_gradient"]
 

@@ -29,9 +29,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._checks import check_positive, check_range, check_static_int
 from ...registry import LinKnob, LogKnob, register
 from ...types import Image, is_concrete
-from .._common import check_positive, check_range, check_static_int
 
 __all__ = [
     "invert",

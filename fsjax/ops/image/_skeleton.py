@@ -31,9 +31,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ..._checks import check_choice
 from ...registry import register
 from ...types import Region
-from .._common import check_choice
 
 __all__ = ["skeleton", "skeleton_endpoints", "skeleton_junctions"]
 

@@ -40,12 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ..._checks import check_positive, check_static_int
 from ...registry import LinKnob, register
 from ...types import Feature, Image, Labels, Region, is_concrete
-from .._common import (
-    check_positive,
-    check_static_int,
-)
 
 __all__ = [
     "threshold",

@@ -18,16 +18,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ..._checks import check_choice, check_positive, check_range, check_static_int
 from ...registry import IntKnob, LinKnob, register
 from ...types import Image, Region, is_concrete
-from .._common import (
-    check_choice,
-    check_mode,
-    check_positive,
-    check_range,
-    check_static_int,
-    correlate1d,
-)
+from .._common import check_mode, correlate1d
 
 __all__ = [
     "local_mean",

@@ -41,9 +41,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._checks import check_choice, check_range, check_static_int
 from ...registry import LinKnob, register
 from ...types import Image, Match, is_concrete
-from .._common import check_choice, check_range, check_static_int, eps
+from .._common import eps
 from ._shared import _check_pair, _dedupe, _dtype, _fill_match, _greedy_peaks
 
 __all__ = ["ncc_map", "ncc_locate", "phase_correlation"]

@@ -24,9 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._checks import check_range, check_static_int
 from ...registry import LinKnob, LogKnob, register
 from ...types import Image, Match, is_concrete
-from .._common import check_range, check_static_int
 from ._shared import _check_pair, _dedupe, _dtype, _fill_match, _greedy_peaks
 
 __all__ = ["shape_locate"]
@@ -522,7 +522,7 @@ def shape_locate(img: Image, template: Image, /, *, min_score: float = 0.8, min_
       One workpiece rotated by 30 deg about a sub-pixel position:
 
       >>> import jax.numpy as jnp, fsjax
-      >>> from fsjax.synth._workpiece import render_part, workpiece_template
+      >>> from fsjax.synth import render_part, workpiece_template
       >>> scene = 0.3 + 0.5 * render_part((96, 112), 47.3, 55.6, 30.0)
       >>> m = fsjax.ops.shape_locate(fsjax.Image(jnp.asarray(scene)),
       ...                            fsjax.Image(jnp.asarray(workpiece_template())), capacity=2)

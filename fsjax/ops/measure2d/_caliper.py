@@ -44,16 +44,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._checks import check_choice, check_positive, check_range, check_static_int
 from ...registry import LogKnob, poison, register
 from ...types import Edges1D, Image, Signal, is_concrete
-from .._common import (
-    check_choice,
-    check_positive,
-    check_range,
-    check_static_int,
-    correlate1d,
-    support_exceeded,
-)
+from .._common import correlate1d, support_exceeded
 from ._contours import gauss_deriv_taps
 
 __all__ = ["measure_projection", "measure_pos", "measure_pairs"]
@@ -353,7 +347,7 @@ def measure_pos(img: Image, /, *, row: float | None = None, col: float | None = 
       ``Edges1D``: ``pos`` (px from the rectangle start), ``row``/``col``,
       signed ``amplitude`` (slope at the parabola peak), ``width = 0``.
 
-    Accuracy (float64, exact scenes in ``fsjax.synth._inspection``, tested): a
+    Accuracy (float64, exact scenes of ``fsjax.synth``, tested): a
     step edge blurred by 0.7 px and moved across one pixel in 0.05 px steps,
     ``sigma=2``: RMS error <= 0.012 px (the pixel of maximum slope, the null:
     about 0.29 px). No reference implementation in SciPy/scikit-image.
@@ -362,7 +356,7 @@ def measure_pos(img: Image, /, *, row: float | None = None, col: float | None = 
       A step at column 23.37, read by a horizontal caliper starting at column 4:
 
       >>> import jax.numpy as jnp, fsjax
-      >>> from fsjax.synth._inspection import step_edge
+      >>> from fsjax.synth import step_edge
       >>> x, truth = step_edge(23.37, shape=(9, 48), blur=0.7)
       >>> e = fsjax.ops.measure_pos(fsjax.Image(jnp.asarray(x)), row=4, col=24.0, length=40, sigma=2.0)
       >>> int(e.valid.sum()), abs(float(e.pos[0]) + 4.0 - truth["edge_col"]) < 0.012
@@ -418,7 +412,7 @@ def measure_pairs(img: Image, /, *, row: float | None = None, col: float | None 
       ``2i + 1`` (second edge); both carry ``width = pos[2i + 1] - pos[2i]``
       (px). ``truncated`` when more pairs were found than ``capacity // 2``.
 
-    Accuracy (exact scenes in ``fsjax.synth._inspection``, tested): diameters
+    Accuracy (exact scenes of ``fsjax.synth``, tested): diameters
     of a back-lit 3-step shaft (fractional widths, 0.6 px blur, ``sigma=2.5``,
     ``width=5``): max error <= 0.02 px (measured 0.013); 45 bars of 2-6 px
     along one scan line, ``sigma=0.5``: every edge within 0.5 px (measured max
@@ -430,7 +424,7 @@ def measure_pairs(img: Image, /, *, row: float | None = None, col: float | None 
       12.4 px) on a bright ground, read by a caliper pointing down (-90 deg):
 
       >>> import jax.numpy as jnp, fsjax
-      >>> from fsjax.synth._inspection import shaft
+      >>> from fsjax.synth import shaft
       >>> x, t = shaft((12.4,), shape=(40, 50), axis_row=24.3, starts=(5.0,), section_length=40.0)
       >>> e = fsjax.ops.measure_pairs(fsjax.Image(jnp.asarray(x)), row=20.0, col=25.0, angle_deg=-90.0,
       ...                             length=30, sigma=2.0, transition="negative")

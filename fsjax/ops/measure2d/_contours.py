@@ -44,18 +44,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._checks import check_choice, check_positive, check_range, check_static_int
 from ...registry import LinKnob, LogKnob, poison, register
-from ...synth import register_pool
 from ...types import Contour, Feature, Image, is_concrete
-from .._common import (
-    check_choice,
-    check_mode,
-    check_positive,
-    check_range,
-    check_static_int,
-    correlate1d,
-    support_exceeded,
-)
+from .._common import check_mode, correlate1d, support_exceeded
 
 __all__ = [
     "subpixel_edges",
@@ -227,7 +219,7 @@ def subpixel_edges(img: Image, /, *, sigma: float = 1.0, threshold: float = 0.05
       module notes). ``truncated`` when more than ``capacity`` points were found.
       Differentiable in the image and sigma for a fixed set of edge pixels.
 
-    Accuracy (float64, exact rendered scenes in ``fsjax.synth._inspection``, tested):
+    Accuracy (float64, exact rendered scenes of ``fsjax.synth``, tested):
     a straight edge blurred by 0.7 px, ``sigma=1.5``: mean error <= 0.02 px;
     a disc of radius 30.25 blurred by 0.6 px, ``sigma=1.0``: mean
     ``|distance to circle| <= 0.05`` px. A curved edge is biased towards its
@@ -238,7 +230,7 @@ def subpixel_edges(img: Image, /, *, sigma: float = 1.0, threshold: float = 0.05
       A vertical edge at column 23.37 (blurred and pixel-integrated exactly):
 
       >>> import jax.numpy as jnp, fsjax
-      >>> from fsjax.synth._inspection import step_edge
+      >>> from fsjax.synth import step_edge
       >>> x, truth = step_edge(23.37, shape=(9, 48), blur=0.7)
       >>> c = fsjax.ops.subpixel_edges(fsjax.Image(jnp.asarray(x)), sigma=1.5)
       >>> cols = c.points[c.valid][:, 1]
@@ -624,26 +616,3 @@ def contour_bbox(c: Contour, /, *, which: str = "height") -> Feature:
     vals = {"row_min": lo[0], "row_max": hi[0], "col_min": lo[1], "col_max": hi[1],
             "height": hi[0] - lo[0], "width": hi[1] - lo[1]}
     return Feature(jnp.where(jnp.any(v), vals[which], jnp.nan), unit="px")
-
-
-# ---------------------------------------------------------------------------
-# standard input
-# ---------------------------------------------------------------------------
-
-
-@register_pool(Contour)
-def _contour_pool(variant, size):
-    """A closed, ordered polyline on an ellipse (about 1 px spacing) plus 4 unused slots."""
-    h, w = size
-    n = 40
-    t = np.arange(n) * 2 * np.pi / n
-    a, b = 0.3 * min(h, w), 0.2 * min(h, w)
-    ang = 0.35 + 0.5 * variant
-    rng = np.random.default_rng(77 + variant)
-    u, v = a * np.cos(t), b * np.sin(t)
-    col = w / 2 + 0.4 * variant + u * np.cos(ang) - v * np.sin(ang)
-    row = h / 2 - u * np.sin(ang) - v * np.cos(ang)
-    pts = np.stack([row, col], -1) + 0.05 * rng.standard_normal((n, 2))
-    pts = np.concatenate([pts, np.zeros((4, 2))])
-    valid = np.arange(n + 4) < n
-    return Contour(jnp.asarray(pts), jnp.asarray(valid), closed=True)

@@ -45,9 +45,9 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from ..._checks import check_positive, check_static_int
 from ...registry import LinKnob, register
 from ...types import Contour, Fit
-from .._common import check_positive, check_static_int
 
 __all__ = ["fit_line", "fit_circle", "fit_ellipse"]
 

@@ -47,9 +47,9 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ..._checks import check_choice, check_range, check_static_int
 from ...registry import LogKnob, register
 from ...types import Feature, Labels, Region
-from .._common import check_choice, check_range, check_static_int
 
 __all__ = [
     "label",

@@ -54,10 +54,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ..._checks import check_choice, check_range, check_static_int
 from ...registry import LinKnob, register
-from ...synth import register_pool, standard_input
 from ...types import Feature, Image, Labels, RegionProps
-from .._common import check_choice, check_range, check_static_int
 
 __all__ = ["region_props", "region_shape", "select_shape", "mean_area"]
 
@@ -528,8 +527,3 @@ def mean_area(labels: Labels, /) -> Feature:
     n = labels.count.astype(dt)
     total = jnp.sum(labels.data != 0).astype(dt)
     return Feature(jnp.where(n > 0, total / jnp.where(n > 0, n, 1.0), jnp.nan), unit="px")
-
-
-@register_pool(RegionProps)
-def _pool_props(variant, size):
-    return region_props(standard_input(Labels, variant, size), standard_input(Image, variant, size), capacity=4)

@@ -47,12 +47,12 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ..._checks import check_choice, check_positive, check_range, check_static_int
 from ...registry import IntKnob, LinKnob, register
 from ...types import Image, Labels, Region
-from .._common import check_choice, check_positive, check_range, check_static_int
 from ..image._distance import edt_squared
-from ._label import label
 from ..image._morphology import flat_morph
+from ._label import label
 
 __all__ = [
     "reconstruct_dilation",

@@ -28,70 +28,18 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
 
+from ..._checks import check_choice, check_positive, check_range
 from ...registry import LinKnob, register
-from ...synth._pool import register_pool
-from ...types import Image, Sort, is_concrete
-from ...types._base import _as_array
-from .._common import check_choice, check_positive, check_range
+from ...types import Image, LightStack, NormalMap
 
-__all__ = ["LightStack", "NormalMap", "photometric_stereo", "relight", "frankot_chellappa"]
+__all__ = ["light_directions", "photometric_stereo", "relight", "frankot_chellappa"]
 
 _METHODS = ("robust", "ls", "lmeds")
-
-
-class LightStack(Sort):
-    """``K`` images ``data (*batch, K, H, W)`` under distant lights ``lights (*batch, K, 3)``.
-
-    ``lights`` are unit directions towards the lights in the camera frame (normalised on
-    construction; a zero-length direction is refused).
-    """
-
-    data: Float[Array, "*batch K H W"]
-    lights: Float[Array, "*batch K 3"]
-    _float_fields = ("data", "lights")
-
-    def __init__(self, data: Any, lights: Any):
-        self.data = _as_array(data, sort="LightStack", field="data", kind="float", min_ndim=3)
-        lights = _as_array(lights, sort="LightStack", field="lights", kind="float", min_ndim=2, trailing=(3,))
-        if lights.shape[-2] != self.data.shape[-3]:
-            raise ValueError(f"LightStack(lights=...): {lights.shape[-2]} lights for {self.data.shape[-3]} images")
-        nn = jnp.linalg.norm(lights, axis=-1, keepdims=True)
-        if is_concrete(nn) and not bool(np.all(np.asarray(nn) > 0)):
-            raise ValueError("LightStack(lights=...): a light direction has zero length")
-        self.lights = lights / jnp.where(nn > 0, nn, jnp.nan)
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        return tuple(self.data.shape[:-3])
-
-
-class NormalMap(Sort):
-    """Unit normals ``(*batch, H, W, 3)`` (camera frame), ``albedo (*batch, H, W)``, ``valid (*batch, H, W)``."""
-
-    normals: Float[Array, "*batch H W 3"]
-    albedo: Float[Array, "*batch H W"]
-    valid: Bool[Array, "*batch H W"]
-    _float_fields = ()
-
-    def __init__(self, normals: Any, albedo: Any, valid: Any = None):
-        self.normals = _as_array(normals, sort="NormalMap", field="normals", kind="float", min_ndim=3, trailing=(3,))
-        self.albedo = _as_array(albedo, sort="NormalMap", field="albedo", kind="float", min_ndim=2)
-        if self.albedo.shape != self.normals.shape[:-1]:
-            raise ValueError(f"NormalMap(albedo=...): shape {self.albedo.shape} does not match normals "
-                             f"{self.normals.shape[:-1]}")
-        v = jnp.isfinite(self.albedo) if valid is None else valid
-        self.valid = _as_array(v, sort="NormalMap", field="valid", kind="bool", min_ndim=2)
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        return tuple(self.albedo.shape[:-2])
 
 
 def light_directions(elevation_deg, azimuth_deg) -> np.ndarray:
@@ -101,35 +49,6 @@ def light_directions(elevation_deg, azimuth_deg) -> np.ndarray:
     a = np.radians(np.asarray(azimuth_deg, float))
     e, a = np.broadcast_arrays(e, a)
     return np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), -np.sin(e)], axis=-1)
-
-
-def _sphere_cap(h, w, variant):
-    """Analytic normals/albedo of a sphere cap filling the frame (for the pool)."""
-    r, c = np.mgrid[0:h, 0:w].astype(float)
-    x = (c - (w - 1) / 2 - variant) / (0.9 * w)
-    y = (r - (h - 1) / 2) / (0.9 * w)
-    z = np.sqrt(np.maximum(1.0 - x * x - y * y, 0.0))
-    n = np.stack([x, y, -z], -1)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    alb = 0.5 + 0.3 * (c / w) + 0.1 * variant
-    return n, alb
-
-
-@register_pool(LightStack)
-def _pool_lightstack(variant, size):
-    """A Lambertian sphere cap (albedo ramp) under 6 lights at 50-70 deg elevation (no shadows)."""
-    h, w = size
-    n, alb = _sphere_cap(h, w, variant)
-    L = light_directions([50, 60, 70, 50, 60, 70], [0, 60, 120, 180, 240, 300 + 10 * variant])
-    data = alb[None] * np.maximum(np.einsum("hwc,kc->khw", n, L), 0.0)
-    return LightStack(jnp.asarray(data), jnp.asarray(L))
-
-
-@register_pool(NormalMap)
-def _pool_normalmap(variant, size):
-    """Normals and albedo of the pool's sphere cap (all valid)."""
-    n, alb = _sphere_cap(*size, variant)
-    return NormalMap(jnp.asarray(n), jnp.asarray(alb))
 
 
 # ---------------------------------------------------------------------------
@@ -257,7 +176,8 @@ def photometric_stereo(stack: LightStack, /, *, shadow_threshold: float = 0.02, 
     ``"robust"``; tests).
 
     Example:
-        >>> from fsjax.ops.measure3d._photometric import LightStack, light_directions
+        >>> from fsjax.ops import light_directions
+        >>> from fsjax.types import LightStack
         >>> L = light_directions([45, 45, 60, 70], [0, 90, 200, 300])
         >>> n = np.array([0.2, -0.1, -1.0]) / np.linalg.norm([0.2, -0.1, -1.0])
         >>> data = 0.7 * np.maximum(L @ n, 0)[:, None, None] * np.ones((4, 2, 3))
@@ -328,7 +248,7 @@ def relight(nm: NormalMap, /, *, azimuth_deg: float = 0.0, elevation_deg: float 
     normals' accuracy (tested against the SDF renderer).
 
     Example:
-        >>> nm = fsjax.ops.measure3d._photometric.NormalMap(jnp.asarray([[[0.0, 0.0, -1.0]]]), jnp.asarray([[0.8]]))
+        >>> nm = fsjax.types.NormalMap(jnp.asarray([[[0.0, 0.0, -1.0]]]), jnp.asarray([[0.8]]))
         >>> round(float(fsjax.ops.relight(nm, elevation_deg=30.0).data[0, 0]), 12)  # 0.8 sin 30
         0.4
     """
@@ -371,7 +291,7 @@ def frankot_chellappa(nm: NormalMap, /, *, pixel_size: float = 1.0) -> Image:
         >>> dx = np.broadcast_to(2 * np.pi / W * np.cos(2 * np.pi * c / W), (H, W))
         >>> n = np.stack([dx, 0 * dx, -np.ones((H, W))], -1)
         >>> n /= np.linalg.norm(n, axis=-1, keepdims=True)
-        >>> nm = fsjax.ops.measure3d._photometric.NormalMap(jnp.asarray(n), jnp.ones((H, W)))
+        >>> nm = fsjax.types.NormalMap(jnp.asarray(n), jnp.ones((H, W)))
         >>> z = fsjax.ops.frankot_chellappa(nm).data
         >>> float(jnp.max(jnp.abs(z - d))) < 1e-12
         True

@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ..._checks import check_static_int
 from ...registry import LinKnob, register
 from ...render.camera import backproject, pixel_grid_uv
 from ...render.raster import rasterize
 from ...types import Camera, Depth, Image, Mesh, Region
-from .._common import check_static_int
 
 __all__ = ["render_depth", "render_silhouette", "shade_depth"]
 

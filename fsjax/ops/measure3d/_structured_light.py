@@ -30,85 +30,17 @@ complementary Gray-code light", Optics and Lasers in Engineering 50(4) (2012).
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
 
+from ..._checks import check_range
 from ...registry import LinKnob, register
 from ...render.camera import pixel_rays
-from ...synth._pool import register_pool
-from ...types import Camera, Depth, Image, Sort
-from ...types._base import _as_array
-from .._common import check_range
+from ...types import Camera, Depth, FringeStack, GrayStack, Image, StructuredLightRig
 
-__all__ = ["FringeStack", "GrayStack", "StructuredLightRig", "wrapped_phase", "graycode_decode",
-           "absolute_phase", "triangulate_column"]
-
-
-class FringeStack(Sort):
-    """``N >= 3`` phase-shifted fringe images ``data (*batch, N, H, W)``, shifts ``2 pi k / N``."""
-
-    data: Float[Array, "*batch N H W"]
-    _float_fields = ("data",)
-
-    def __init__(self, data: Any):
-        self.data = _as_array(data, sort="FringeStack", field="data", kind="float", min_ndim=3)
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        return tuple(self.data.shape[:-3])
-
-
-class GrayStack(Sort):
-    """``2 n`` Gray-code frames ``data (*batch, 2n, H, W)``: bit pattern then its inverse, MSB first."""
-
-    data: Float[Array, "*batch F H W"]
-    _float_fields = ("data",)
-
-    def __init__(self, data: Any):
-        self.data = _as_array(data, sort="GrayStack", field="data", kind="float", min_ndim=3)
-        if self.data.shape[-3] % 2:
-            raise ValueError(f"GrayStack(data=...): needs pattern/inverse pairs, got {self.data.shape[-3]} frames")
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        return tuple(self.data.shape[:-3])
-
-
-class StructuredLightRig(Sort):
-    """A capturing ``camera`` and a ``projector`` (both :class:`fsjax.Camera`, OpenCV frame)."""
-
-    camera: Camera
-    projector: Camera
-    _float_fields = ()
-
-    def __init__(self, camera: Camera, projector: Camera):
-        for name, c in (("camera", camera), ("projector", projector)):
-            if not isinstance(c, Camera):
-                raise TypeError(f"StructuredLightRig({name}=...): expected a Camera, got {type(c).__name__}")
-        self.camera, self.projector = camera, projector
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        return self.camera.batch_shape
-
-
-def _fringe_pool(variant, size):
-    h, w = size
-    r, c = np.mgrid[0:h, 0:w].astype(float)
-    phi = 0.3 * c + 0.1 * r + 0.2 * variant - 3.0
-    n = 4
-    k = np.arange(n)[:, None, None]
-    return 0.5 + 0.4 * np.cos(phi[None] - 2 * np.pi * k / n)
-
-
-@register_pool(FringeStack)
-def _pool_fringe(variant, size):
-    """4-step fringes of a phase ramp ``0.3 col + 0.1 row - 3``, contrast 0.4."""
-    return FringeStack(jnp.asarray(_fringe_pool(variant, size)))
+__all__ = ["gray_frames", "wrapped_phase", "graycode_decode", "absolute_phase", "triangulate_column"]
 
 
 def gray_frames(code, n_bits: int, *, high: float = 0.9, low: float = 0.1) -> np.ndarray:
@@ -120,25 +52,6 @@ def gray_frames(code, n_bits: int, *, high: float = 0.9, low: float = 0.1) -> np
         bit = (g >> b) & 1
         out += [np.where(bit, high, low), np.where(bit, low, high)]
     return np.stack(out).astype(float)
-
-
-@register_pool(GrayStack)
-def _pool_gray(variant, size):
-    """4-bit complementary Gray code of stripes 2 columns wide."""
-    h, w = size
-    c = np.broadcast_to(np.arange(w), (h, w))
-    return GrayStack(jnp.asarray(gray_frames((c + variant) // 2 % 16, 4)))
-
-
-@register_pool(StructuredLightRig)
-def _pool_rig(variant, size):
-    """Camera 32 x 24 at the origin looking +z; 64-column projector 100 mm to the right, aimed at z = 500 mm."""
-    from ...render.camera import look_at
-
-    cam = Camera.from_intrinsics(40.0, 40.0, 15.5, 11.5, width=32, height=24)
-    R, t = look_at([100.0 + 10.0 * variant, 0.0, 0.0], [0.0, 0.0, 500.0], up=[0.0, -1.0, 0.0])
-    proj = Camera.from_intrinsics(80.0, 80.0, 31.5, 23.5, width=64, height=48, R=R, t=t)
-    return StructuredLightRig(cam, proj)
 
 
 @register(family="structured_light", takes=FringeStack, gives=Image, refs=["Srinivasan et al. 1984"])
@@ -157,7 +70,7 @@ def wrapped_phase(stack: FringeStack, /) -> Image:
         :class:`Image` of the wrapped phase (radians).
 
     Example:
-        >>> from fsjax.ops.measure3d._structured_light import FringeStack
+        >>> from fsjax.types import FringeStack
         >>> k = np.arange(4)[:, None, None]
         >>> frames = 0.5 + 0.3 * np.cos(1.2 - 2 * np.pi * k / 4) * np.ones((4, 2, 2))
         >>> round(float(fsjax.ops.wrapped_phase(FringeStack(jnp.asarray(frames))).data[0, 0]), 12)
@@ -190,7 +103,8 @@ def graycode_decode(stack: GrayStack, /, *, min_contrast: float = 0.02) -> Image
         :class:`Image` of stripe indices ``0 .. 2^n - 1`` as floats (-1 where undecidable).
 
     Example:
-        >>> from fsjax.ops.measure3d._structured_light import GrayStack, gray_frames
+        >>> from fsjax.ops import gray_frames
+        >>> from fsjax.types import GrayStack
         >>> codes = np.arange(8).reshape(2, 4)
         >>> out = fsjax.ops.graycode_decode(GrayStack(jnp.asarray(gray_frames(codes, 3))))
         >>> np.asarray(out.data).astype(int).tolist()
@@ -272,7 +186,7 @@ def triangulate_column(column: Image, rig: StructuredLightRig, /) -> Depth:
     tests) and by finite differences.
 
     Example:
-        >>> from fsjax.ops.measure3d._structured_light import StructuredLightRig
+        >>> from fsjax.types import StructuredLightRig
         >>> cam = fsjax.Camera.from_intrinsics(40.0, 40.0, 1.0, 1.0, width=3, height=3)
         >>> proj = fsjax.Camera.from_intrinsics(80.0, 80.0, 31.5, 23.5, width=64, height=48,
         ...                                     t=jnp.asarray([100.0, 0.0, 0.0]))

@@ -37,10 +37,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..._checks import check_choice, check_positive, check_static_int
 from ...registry import register
 from ...render.volume import project_volume
 from ...types import Camera, Feature, Image, Volume
-from .._common import check_choice, check_positive, check_static_int
 
 __all__ = ["radon_transform", "filtered_backprojection", "backprojection", "rotation_center", "volume_drr",
            "volume_mip"]

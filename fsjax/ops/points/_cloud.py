@@ -31,9 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ..._checks import check_positive, check_range, check_static_int
 from ...registry import LinKnob, LogKnob, register
 from ...types import Points
-from .._common import check_positive, check_range, check_static_int
 from ._search import knn as _search_knn
 
 __all__ = [

@@ -24,64 +24,14 @@ Conventions:
 
 from __future__ import annotations
 
-from typing import Any
-
-import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
-from jaxtyping import Array, Bool, Float
 
+from ..._checks import check_static_int
 from ...registry import register
-from ...synth._pool import register_pool
-from ...types import Points, Sort
-from ...types._base import _as_array
-from .._common import check_static_int
+from ...types import Points, PointValues
 from ._cloud import _valid_mask, knn, pca_frames
 
-__all__ = ["PointValues", "curvature"]
-
-
-class PointValues(Sort):
-    """Per-point values of a cloud: ``values`` ``(*batch, N, C)`` with named columns.
-
-    ``names`` (static) names the ``C`` columns; ``valid`` ``(*batch, N)`` is the
-    cloud's mask (invalid rows hold NaN). ``pv["curvedness"]`` returns a column.
-    """
-
-    values: Float[Array, "*batch N C"]
-    valid: Bool[Array, "*batch N"]
-    names: tuple[str, ...] = eqx.field(static=True, default=())
-    _float_fields = ()  # NaN marks a value that could not be measured
-
-    def __init__(self, values: Any, names: tuple[str, ...], valid: Any = None):
-        self.values = _as_array(values, sort="PointValues", field="values", kind="float", min_ndim=2)
-        self.names = tuple(str(n) for n in names)
-        if len(self.names) != self.values.shape[-1]:
-            raise ValueError(f"PointValues(names=...): {len(self.names)} names for {self.values.shape[-1]} columns")
-        if valid is None:
-            valid = jnp.ones(self.values.shape[:-1], dtype=bool)
-        self.valid = _as_array(valid, sort="PointValues", field="valid", kind="bool", min_ndim=1)
-        if self.valid.shape != self.values.shape[:-1]:
-            raise ValueError(f"PointValues(valid=...): shape {self.valid.shape} does not match values "
-                             f"{self.values.shape[:-1]}")
-
-    def __getitem__(self, name: str) -> Array:
-        if name not in self.names:
-            raise KeyError(f"PointValues: no column {name!r}; columns: {', '.join(self.names)}")
-        return self.values[..., self.names.index(name)]
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        return tuple(self.values.shape[:-2])
-
-
-@register_pool(PointValues)
-def _point_values(variant, size):
-    """Two columns over 16 points (variant 1 shifted); the last slot invalid."""
-    v = np.stack([np.linspace(0.0, 1.0, 16), np.linspace(1.0, 2.0, 16) ** 2], -1) + 0.5 * variant
-    valid = np.ones(16, bool)
-    valid[-1] = False
-    return PointValues(jnp.asarray(v), ("a", "b"), jnp.asarray(valid))
+__all__ = ["curvature"]
 
 
 CURVATURE_NAMES = ("k1", "k2", "mean", "gaussian", "shape_index", "curvedness")

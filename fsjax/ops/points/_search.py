@@ -80,9 +80,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from ..._checks import check_static_int
 from ...registry import register
 from ...types import Feature, Mesh, Points, is_concrete
-from .._common import check_static_int
 
 __all__ = ["knn", "radius_search", "sample_surface", "point_spacing", "GridIndex", "build_index", "query_knn",
            "query_radius"]

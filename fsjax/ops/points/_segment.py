@@ -17,66 +17,17 @@ Conventions:
 
 from __future__ import annotations
 
-from typing import Any
-
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
-from jaxtyping import Array, Bool, Int
 
+from ..._checks import check_positive, check_range, check_static_int
 from ...registry import LinKnob, LogKnob, register
-from ...synth._pool import register_pool
-from ...types import Points, Sort
-from ...types._base import _as_array
-from .._common import check_positive, check_range, check_static_int
+from ...types import PointLabels, Points
 from ._cloud import _replace, _valid_mask
 from ._search import radius_search
 
-__all__ = ["PointLabels", "euclidean_cluster", "remove_ground", "cluster_centroids"]
-
-
-class PointLabels(Sort):
-    """Per-point cluster labels: ``labels`` ``(*batch, N)`` int32, 0 = none, ``1..count``.
-
-    ``valid`` is the cloud's mask, ``count`` the number of clusters,
-    ``truncated`` True when the cluster capacity or a neighbour capacity was
-    exceeded.
-    """
-
-    labels: Int[Array, "*batch N"]
-    valid: Bool[Array, "*batch N"]
-    count: Int[Array, "*batch"]
-    truncated: Bool[Array, "*batch"]
-
-    def __init__(self, labels: Any, valid: Any = None, count: Any = None, truncated: Any = False):
-        self.labels = _as_array(labels, sort="PointLabels", field="labels", kind="int", min_ndim=1)
-        if valid is None:
-            valid = jnp.ones(self.labels.shape, dtype=bool)
-        self.valid = _as_array(valid, sort="PointLabels", field="valid", kind="bool", min_ndim=1)
-        if self.valid.shape != self.labels.shape:
-            raise ValueError(f"PointLabels(valid=...): shape {self.valid.shape} does not match labels "
-                             f"{self.labels.shape}")
-        if count is None:
-            count = np.max(np.asarray(self.labels), axis=-1, initial=0)
-        self.count = jnp.asarray(count, dtype=jnp.int32)
-        self.truncated = jnp.asarray(truncated, dtype=bool)
-
-    @property
-    def batch_shape(self) -> tuple[int, ...]:
-        return tuple(self.labels.shape[:-1])
-
-
-@register_pool(PointLabels)
-def _point_labels(variant, size):
-    """Three clusters over 24 points (variant 1: relabelled), last slot invalid."""
-    lab = np.repeat(np.arange(1, 4, dtype=np.int32), 8)
-    if variant:
-        lab = lab[::-1].copy()
-    valid = np.ones(24, bool)
-    valid[-1] = False
-    lab[-1] = 0
-    return PointLabels(jnp.asarray(lab), jnp.asarray(valid), count=3)
+__all__ = ["euclidean_cluster", "remove_ground", "cluster_centroids"]
 
 
 # ---------------------------------------------------------------------------
