@@ -9,8 +9,9 @@ Conventions (stated once for the registration modules ``rigid``, ``icp``, ``glob
   ``v`` the translational part; ``se3_exp(xi)`` is the group exponential (not ``(exp w, v)``).
   Updates in the ICP solvers are applied on the left: ``T <- exp(xi) T``.
 * Weights are non-negative; a weight of 0 (or an invalid point) removes the point.
-* Failing closed: every fit returns a record with ``valid``/``converged`` and an int32
-  ``reason`` code (:data:`REGISTRATION_REASONS`, text from :func:`reason_message`). When the data cannot
+* Failing closed: every fit returns a record with the base fields of :mod:`fsjax.types.results`
+  (``converged``, an int32 ``reason`` code of :data:`fsjax.types.RESULTS` with its ``message``,
+  ``iterations``, the residual ``rms_len`` in the input's length unit). When the data cannot
   determine the pose (fewer than 3 weighted points, collinear points, non-finite input), the
   pose fields are NaN: never a plausible pose.
 * Float64 is the validated precision (tests enable x64); float32 works, with rotation errors
@@ -24,8 +25,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from ..types.results import FitResult, deprecated_name, legacy_table, reason_code, reason_message, renamed
+
 __all__ = [
-    "REGISTRATION_REASONS",
     "reason_message",
     "RigidFit",
     "kabsch_umeyama",
@@ -41,22 +43,17 @@ __all__ = [
     "pca_canonical_pose",
 ]
 
-#: Reason codes shared by all registration records (``reason`` field, int32).
-REGISTRATION_REASONS: dict[int, str] = {
-    0: "ok",
-    1: "maximum number of iterations reached before the pose update fell below tolerance",
-    2: "too few correspondences (fewer valid / inlier pairs than the model needs)",
-    3: "degenerate geometry (collinear or rank-deficient points, singular normal equations)",
-    4: "invalid input (empty or all-invalid cloud, or non-finite coordinates)",
-    5: "converged, but the fit is poor (inlier fraction below min_inlier_fraction)",
-    6: "no consistent hypothesis (RANSAC found no hypothesis with enough inliers)",
-}
-OK, MAX_ITER, TOO_FEW, DEGENERATE, INVALID, LOW_FITNESS, NO_HYPOTHESIS = range(7)
+OK, MAX_ITER, TOO_FEW, DEGENERATE, INVALID, LOW_FITNESS, NO_HYPOTHESIS = (
+    reason_code(n) for n in ("ok", "max_iterations", "too_few", "degenerate", "invalid_input", "poor_fit",
+                             "no_hypothesis"))
 
 
-def reason_message(code) -> str:
-    """The text of a reason code (``int`` or a concrete 0-d array)."""
-    return REGISTRATION_REASONS.get(int(code), f"unknown reason code {int(code)}")
+def __getattr__(name):
+    if name == "REGISTRATION_REASONS":
+        deprecated_name("fsjax.fit.rigid.REGISTRATION_REASONS", "fsjax.types.RESULTS (reason_message)")
+        return legacy_table(("ok", "max_iterations", "too_few", "degenerate", "invalid_input", "poor_fit",
+                             "no_hypothesis"))
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _eps(dtype) -> float:
@@ -193,30 +190,32 @@ def rotation_from_axis_angle(axis, angle_deg) -> Float[Array, "*b 3 3"]:
 # ---------------------------------------------------------------------------
 
 
-class RigidFit(eqx.Module):
+class RigidFit(FitResult):
     """Result of :func:`kabsch_umeyama`: ``dst ~ scale * R src + t``.
 
     Attributes:
-        R: ``(3, 3)`` proper rotation (NaN when not ``valid``).
-        t: ``(3,)`` translation (NaN when not ``valid``).
-        scale: similarity scale (1 unless ``with_scale``; NaN when not ``valid``).
-        rms: weighted RMS of ``|dst - (scale R src + t)|`` over the used pairs.
+        R: ``(3, 3)`` proper rotation (NaN when not ``converged``).
+        t: ``(3,)`` translation (NaN when not ``converged``).
+        scale: similarity scale (1 unless ``with_scale``; NaN when not ``converged``).
+        rms_len: weighted RMS of ``|dst - (scale R src + t)|`` over the used pairs (input length unit).
         n_used: number of pairs with positive weight.
-        valid: the pose is determined by the data.
-        reason: int32 code of :data:`REGISTRATION_REASONS` (0 when ``valid``).
+        converged: the pose is determined by the data (was ``valid``).
+        reason: int32 code of :data:`fsjax.types.RESULTS` (0 when ``converged``); ``message`` its text.
+        iterations: 0 (closed form).
     """
 
     R: Float[Array, "3 3"]
     t: Float[Array, " 3"]
     scale: Float[Array, ""]
-    rms: Float[Array, ""]
+    rms_len: Float[Array, ""]
     n_used: Int[Array, ""]
-    valid: Bool[Array, ""]
+    converged: Bool[Array, ""]
     reason: Int[Array, ""]
+    iterations: Int[Array, ""]
+    residual_name = "rms_len"
 
-    @property
-    def message(self) -> str:
-        return reason_message(self.reason)
+    rms = renamed("rms_len")
+    valid = renamed("converged")
 
 
 def _weighted_kabsch(src, dst, w, with_scale: bool):
@@ -263,7 +262,7 @@ def kabsch_umeyama(
         with_scale: also fit a similarity scale (static bool).
 
     Returns:
-        :class:`RigidFit`. Fails closed (NaN pose, ``valid=False``) with reason 2 (fewer than
+        :class:`RigidFit`. Fails closed (NaN pose, ``converged=False``) with reason 2 (fewer than
         3 weighted pairs), 3 (collinear or coincident points: the second singular value of the
         cross-covariance is below ``1e3 eps`` of the first) or 4 (non-finite input).
 
@@ -275,7 +274,7 @@ def kabsch_umeyama(
         >>> src = jnp.array([[0., 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3], [1, 1, 1]])
         >>> R = rotation_from_axis_angle(jnp.array([1., 2, 3]), 40.0)
         >>> fit = kabsch_umeyama(src, src @ R.T + jnp.array([0.5, -1.0, 2.0]))
-        >>> bool(fit.valid), float(rotation_error_deg(fit.R, R)) < 1e-9, round(float(fit.t[1]), 9)
+        >>> bool(fit.converged), float(rotation_error_deg(fit.R, R)) < 1e-9, round(float(fit.t[1]), 9)
         (True, True, -1.0)
     """
     src = jnp.asarray(src)
@@ -303,7 +302,8 @@ def kabsch_umeyama(
     nan = jnp.asarray(jnp.nan, dtype)
     return RigidFit(
         R=jnp.where(valid, r, nan), t=jnp.where(valid, t, nan), scale=jnp.where(valid, scale, nan),
-        rms=jnp.where(valid, rms, nan), n_used=n_used, valid=valid, reason=reason.astype(jnp.int32),
+        rms_len=jnp.where(valid, rms, nan), n_used=n_used, converged=valid, reason=reason.astype(jnp.int32),
+        iterations=jnp.zeros((), jnp.int32),
     )
 
 
@@ -312,8 +312,12 @@ def kabsch_umeyama(
 # ---------------------------------------------------------------------------
 
 
-class CanonicalPose(eqx.Module):
+class CanonicalPose(FitResult):
     """Result of :func:`pca_canonical_pose`.
+
+    A fit result (base fields ``converged``, ``reason``, ``iterations``) without a residual:
+    the pose is a closed-form function of the covariance and skewness, nothing is minimised
+    (``residual_name`` is ``None``).
 
     Attributes:
         R: ``(3, 3)`` proper rotation whose columns are the canonical axes in world coordinates
@@ -325,7 +329,9 @@ class CanonicalPose(eqx.Module):
         flipped_axis: int32 index of the axis flipped to make the frame right-handed (-1: none).
         ambiguous: ``True`` when the pose is not determined by the shape: two eigenvalues within
             ``eig_tol`` (relative), or an axis whose sign rests on a skewness below ``skew_tol``.
-        valid: fewer than 4 valid points or non-finite input -> ``False`` and NaN fields.
+        converged: fewer than 4 valid points or non-finite input -> ``False`` and NaN fields
+            (was ``valid``); ``reason`` says which (``too_few`` or ``invalid_input``).
+        iterations: 0 (closed form).
     """
 
     R: Float[Array, "3 3"]
@@ -334,7 +340,11 @@ class CanonicalPose(eqx.Module):
     skewness: Float[Array, " 3"]
     flipped_axis: Int[Array, ""]
     ambiguous: Bool[Array, ""]
-    valid: Bool[Array, ""]
+    converged: Bool[Array, ""]
+    reason: Int[Array, ""]
+    iterations: Int[Array, ""]
+
+    valid = renamed("converged")
 
 
 def pca_canonical_pose(
@@ -364,7 +374,7 @@ def pca_canonical_pose(
 
     Returns:
         :class:`CanonicalPose` (``ambiguous`` says when the pose is not unique, e.g. a sphere or a
-        symmetric box; ``valid=False`` with NaN for fewer than 4 points or non-finite input).
+        symmetric box; ``converged=False`` with NaN for fewer than 4 points or non-finite input).
 
     Example:
         >>> import jax, jax.numpy as jnp
@@ -410,5 +420,7 @@ def pca_canonical_pose(
     return CanonicalPose(
         R=jnp.where(ok, vec, nan), centroid=jnp.where(ok, c, nan), eigenvalues=jnp.where(ok, lam, nan),
         skewness=jnp.where(ok, skw, nan), flipped_axis=jnp.where(left, k, -1).astype(jnp.int32),
-        ambiguous=ambiguous | ~ok, valid=ok,
+        ambiguous=ambiguous | ~ok, converged=ok,
+        reason=jnp.where(~finite, INVALID, jnp.where(ok, OK, jnp.where(n >= 4, DEGENERATE, TOO_FEW))).astype(jnp.int32),
+        iterations=jnp.zeros((), jnp.int32),
     )

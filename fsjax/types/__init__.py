@@ -28,5 +28,10 @@ from .raster import *  # noqa: F403
 from .raster import __all__ as _raster_all
 from .records import *  # noqa: F403
 from .records import __all__ as _records_all
+from .results import RESULTS as RESULTS
+from .results import FitResult as FitResult
+from .results import reason_code as reason_code
+from .results import reason_message as reason_message
 
-__all__ = ["Sort", "is_concrete", *_raster_all, *_geometry_all, *_records_all]
+__all__ = ["Sort", "is_concrete", *_raster_all, *_geometry_all, *_records_all, "RESULTS", "FitResult",
+           "reason_code", "reason_message"]

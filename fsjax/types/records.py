@@ -11,7 +11,22 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._base import Sort, _as_array
 
-__all__ = ["Feature", "Match", "RegionProps", "Fit", "Edges1D"]
+__all__ = ["Feature", "Match", "RegionProps", "NamedParams", "Fit", "Edges1D"]
+
+
+class NamedParams(eqx.Module):
+    """Mixin: a parameter vector ``params (..., P)`` whose columns ``names`` (static) name.
+
+    ``rec["r"]`` returns the column ``r`` (batched records: shape ``(*batch,)``); an unknown
+    name raises ``KeyError`` listing the parameters. Used by :class:`Fit`,
+    :class:`fsjax.fit.Fit3D` and :class:`fsjax.fit.RansacResult`.
+    """
+
+    def __getitem__(self, name: str) -> Array:
+        names = self.names
+        if name not in names:
+            raise KeyError(f"{type(self).__name__}: no parameter {name!r}; parameters: {', '.join(names)}")
+        return self.params[..., names.index(name)]
 
 
 class Feature(Sort):
@@ -124,7 +139,7 @@ class RegionProps(Sort):
         return tuple(self.table.shape[:-2])
 
 
-class Fit(Sort):
+class Fit(NamedParams, Sort):
     """Result record of a geometric fit: named parameters plus diagnostics.
 
     ``kind`` (static) names the model (``"line"``, ``"circle"``, ``"ellipse"``,
@@ -154,11 +169,6 @@ class Fit(Sort):
         self.converged = jnp.asarray(converged, dtype=bool)
         self.iterations = jnp.asarray(iterations, dtype=jnp.int32)
         self.n_used = jnp.asarray(n_used, dtype=jnp.int32)
-
-    def __getitem__(self, name: str) -> Array:
-        if name not in self.names:
-            raise KeyError(f"Fit: no parameter {name!r}; parameters: {', '.join(self.names)}")
-        return self.params[..., self.names.index(name)]
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
