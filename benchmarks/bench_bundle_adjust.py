@@ -46,7 +46,7 @@ def _fsjax_case(s, repeats: int):
         r = jax.block_until_ready(f(*args))
         times.append(time.perf_counter() - t0)
     steady = float(np.median(times))
-    return dict(time=steady, compile=max(first - steady, 0.0), rmse=float(r.rmse), rmse0=float(r.rmse_initial),
+    return dict(time=steady, compile=max(first - steady, 0.0), rmse=float(r.rms_px), rmse0=float(r.rms_px_initial),
                 iters=int(r.iterations), converged=bool(r.converged))
 
 

@@ -347,7 +347,7 @@ def main() -> None:
         return
     reg = ["# Registration (fsjax.fit.rigid, icp, global_reg)", "",
            "Pose convention `target = R source + t`; every fit returns a record with `converged` and a reason "
-           "code (`fsjax.fit.REGISTRATION_REASONS`). Benchmarks against Open3D: [benchmarks_icp.md](benchmarks_icp.md).", "",
+           "code (`fsjax.types.RESULTS`, docs/results.md). Benchmarks against Open3D: [benchmarks_icp.md](benchmarks_icp.md).", "",
            "## Basin of convergence", "",
            f"The bunny ({args.basin_points} area-weighted samples, 0.2 mm noise) rotated about its centroid by the "
            f"angle shown about {args.basin_axes} random axes, ICP from the identity (60 iterations at most); success = rotation error below 1 deg. "

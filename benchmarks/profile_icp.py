@@ -67,7 +67,7 @@ def main():
 
 def stages(src, tgt, tv):
     """(name, function, args) of each stage of one point-to-plane / point-to-point iteration."""
-    from fsjax.fit.icp import estimate_normals, knn
+    from fsjax.fit.icp import _estimate_normals as estimate_normals, _knn as knn
 
     n = src.shape[0]
     w = jnp.ones(n, src.dtype)

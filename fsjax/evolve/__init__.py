@@ -19,7 +19,7 @@ from .genome import champion_record as champion_record
 from .genome import decode as decode
 from .genome import encode as encode
 from .genome import enumerate_skeletons as enumerate_skeletons
-from .genome import skeleton as skeleton
+from .genome import type_skeleton as type_skeleton
 from .genome import stage_vocabulary as stage_vocabulary
 from .population import Evaluator as Evaluator
 from .problems import PROBLEMS as PROBLEMS
@@ -34,3 +34,11 @@ from .search import GAConfig as GAConfig
 from .search import evolve as evolve
 from .search import random_search as random_search
 from .search import refine as refine
+
+
+def __getattr__(name):
+    if name == "skeleton":  # renamed type_skeleton (fsjax.ops.skeleton is the morphological skeleton)
+        from . import genome
+
+        return genome.__getattr__(name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -50,7 +50,7 @@ __all__ = [
     "IDENTITY",
     "DEFAULT_VOCABULARY",
     "Skeleton",
-    "skeleton",
+    "type_skeleton",
     "enumerate_skeletons",
     "stage_vocabulary",
     "random_population",
@@ -151,7 +151,7 @@ class Skeleton:
         return f"Skeleton({self.describe()}; vocabulary sizes {self.sizes.tolist()})"
 
 
-def skeleton(sorts: Sequence[type], vocabulary: Sequence[str] | None = None) -> Skeleton:
+def type_skeleton(sorts: Sequence[type], vocabulary: Sequence[str] | None = None) -> Skeleton:
     """Build a :class:`Skeleton` from its sorts, checking every stage has a vocabulary.
 
     Args:
@@ -165,16 +165,16 @@ def skeleton(sorts: Sequence[type], vocabulary: Sequence[str] | None = None) -> 
     """
     sorts = tuple(sorts)
     if len(sorts) < 2:
-        raise ValueError(f"skeleton: need at least 2 sorts (input and one stage), got {len(sorts)}")
+        raise ValueError(f"type_skeleton: need at least 2 sorts (input and one stage), got {len(sorts)}")
     for t in sorts:
         if t not in STATE_SORTS:
-            raise ValueError(f"skeleton: sort {getattr(t, '__name__', t)!r} cannot be a stage state; "
+            raise ValueError(f"type_skeleton: sort {getattr(t, '__name__', t)!r} cannot be a stage state; "
                              f"supported: {', '.join(c.__name__ for c in STATE_SORTS)}")
     vocabs = []
     for s in range(len(sorts) - 1):
         v = stage_vocabulary(sorts[s], sorts[s + 1], vocabulary)
         if not v:
-            raise ValueError(f"skeleton: stage {s + 1} ({sorts[s].__name__} -> {sorts[s + 1].__name__}) has an "
+            raise ValueError(f"type_skeleton: stage {s + 1} ({sorts[s].__name__} -> {sorts[s + 1].__name__}) has an "
                              f"empty vocabulary: no op of the search vocabulary takes {sorts[s].__name__} and "
                              f"gives {sorts[s + 1].__name__}")
         vocabs.append(v)
@@ -190,7 +190,7 @@ def enumerate_skeletons(takes: type, gives: type, n_stages: int,
     paths: list[tuple[type, ...]] = [(takes,)]
     for _ in range(n_stages):
         paths = [p + (t,) for p in paths for t in states if stage_vocabulary(p[-1], t, vocabulary)]
-    return [skeleton(p, vocabulary) for p in paths if p[-1] is gives]
+    return [type_skeleton(p, vocabulary) for p in paths if p[-1] is gives]
 
 
 def random_population(rng: np.random.Generator, sk: Skeleton, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -273,3 +273,12 @@ def encode(sk: Skeleton, record: dict[str, Any]) -> tuple[np.ndarray, np.ndarray
 def is_state_sort(t: type) -> bool:
     """True for the sorts a stage state can have (:data:`STATE_SORTS`)."""
     return isinstance(t, type) and issubclass(t, Sort) and t in STATE_SORTS
+
+
+def __getattr__(name):
+    if name == "skeleton":  # renamed: fsjax.ops.skeleton is the morphological skeleton
+        from ..types.results import deprecated_name
+
+        deprecated_name("fsjax.evolve.skeleton", "fsjax.evolve.type_skeleton")
+        return type_skeleton
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -43,7 +43,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from ..types import Feature, Image, Region
-from .genome import Skeleton, skeleton
+from .genome import Skeleton, type_skeleton
 
 __all__ = ["Split", "Problem", "make_problem", "problem_from_pairs", "PROBLEMS", "METRICS", "METRIC_FLOOR"]
 
@@ -149,7 +149,7 @@ class Problem:
         return METRIC_FLOOR[self.metric]
 
     def skeleton(self, vocabulary: Sequence[str] | None = None, sorts: Sequence[type] | None = None) -> Skeleton:
-        return skeleton(self.default_sorts if sorts is None else sorts, vocabulary)
+        return type_skeleton(self.default_sorts if sorts is None else sorts, vocabulary)
 
     def split(self, name: str) -> Split:
         if name not in ("train", "holdout", "locked"):

@@ -43,22 +43,32 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ..types.results import FitResult, Legacy, deprecated_name, renamed
 from .rigid import so3_exp
 
-__all__ = ["BundleResult", "BA_REASONS", "bundle_adjust", "reprojection_residuals"]
+__all__ = ["BundleResult", "bundle_adjust", "reprojection_residuals"]
 
-BA_REASONS = {0: "converged", 1: "maximum number of iterations reached", 2: "singular reduced camera system",
-              3: "invalid input (non-finite values, bad indices, or fewer than 2 cameras)"}
+#: the old bundle-adjustment codes 0..3 (deprecated ``legacy_reason`` and ``BA_REASONS``)
+_LEGACY = Legacy(("ok", "max_iterations", "degenerate", "invalid_input"))
 
 
-class BundleResult(eqx.Module):
+def __getattr__(name):
+    if name == "BA_REASONS":
+        deprecated_name("fsjax.fit.bundle_adjust.BA_REASONS", "fsjax.types.RESULTS (reason_message)")
+        return _LEGACY.table()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+class BundleResult(FitResult):
     """Result of :func:`bundle_adjust`.
 
     ``rotvecs (N, 3)``, ``translations (N, 3)``: ``camera_from_world`` poses; ``R_world_from_camera
     (N, 3, 3)`` and ``centers (N, 3)``: the same poses in the library's convention; ``points (M, 3)``;
-    ``rmse_initial`` / ``rmse``: unweighted RMS over all residual coordinates (u and v, pixels)
-    before and after (SciPy's convention: ``sqrt(mean(r^2))`` of the stacked residual vector); ``cost``: final robust objective; ``iterations``; ``converged``; ``reason`` (see
-    :data:`BA_REASONS`).
+    ``rms_px_initial`` / ``rms_px``: unweighted RMS over all residual coordinates (u and v,
+    pixels) before and after (SciPy's convention: ``sqrt(mean(r^2))`` of the stacked residual
+    vector; were ``rmse_initial`` / ``rmse``); ``cost``: final robust objective; ``iterations``;
+    ``converged``; ``reason``: code of :data:`fsjax.types.RESULTS` (``ok``, ``max_iterations``,
+    ``degenerate``: singular reduced camera system, ``invalid_input``).
     """
 
     rotvecs: Float[Array, "N 3"]
@@ -66,12 +76,17 @@ class BundleResult(eqx.Module):
     R_world_from_camera: Float[Array, "N 3 3"]
     centers: Float[Array, "N 3"]
     points: Float[Array, "M 3"]
-    rmse_initial: Float[Array, ""]
-    rmse: Float[Array, ""]
+    rms_px_initial: Float[Array, ""]
+    rms_px: Float[Array, ""]
     cost: Float[Array, ""]
     iterations: Int[Array, ""]
     converged: Bool[Array, ""]
     reason: Int[Array, ""]
+    residual_name = "rms_px"
+
+    rmse = renamed("rms_px")
+    rmse_initial = renamed("rms_px_initial")
+    legacy_reason = _LEGACY.property()
 
 
 def _project(K, w, t, X):
@@ -311,7 +326,7 @@ def bundle_adjust(K, rotvecs, translations, points, cam_idx, pt_idx, uv, *, loss
         >>> ci, pi = np.repeat(np.arange(3), 40), np.tile(np.arange(40), 3)
         >>> uv = reprojection_residuals(K, w, t, X, ci, pi, jnp.zeros((120, 2)))
         >>> res = bundle_adjust(K, w + 0.01, t.at[2].add(0.05), X + 0.02, ci, pi, uv)
-        >>> bool(res.converged), float(res.rmse) < 1e-8, float(res.rmse_initial) > 1.0
+        >>> bool(res.converged), float(res.rms_px) < 1e-8, float(res.rms_px_initial) > 1.0
         (True, True, True)
     """
     fn = "bundle_adjust"
@@ -360,10 +375,11 @@ def _run(pb: _Problem, w0, t0, X0, uv, bad, max_iter: int, tol: float) -> Bundle
     invalid = bad | ~finite
     reason = jnp.where(invalid, 3, jnp.where(fail, 2, jnp.where(done, 0, 1))).astype(jnp.int32)
     converged = reason == 0
+    reason = _LEGACY.new(reason).astype(jnp.int32)
     nanif = lambda a: jnp.where(invalid | fail, jnp.nan, a)  # noqa: E731
     R = so3_exp(cams[:, :3])
     Rwc = jnp.swapaxes(R, -1, -2)
     centers = -jnp.einsum("nij,nj->ni", Rwc, cams[:, 3:])
     return BundleResult(rotvecs=nanif(cams[:, :3]), translations=nanif(cams[:, 3:]), R_world_from_camera=nanif(Rwc),
-                        centers=nanif(centers), points=nanif(pts), rmse_initial=rmse0, rmse=nanif(rmse),
+                        centers=nanif(centers), points=nanif(pts), rms_px_initial=rmse0, rms_px=nanif(rmse),
                         cost=nanif(cost), iterations=it, converged=converged, reason=reason)

@@ -45,6 +45,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..render.camera import project
 from ..types import Camera
+from ..types.results import FitResult, reason_code, renamed
 
 __all__ = [
     "Calibration",
@@ -222,19 +223,21 @@ def _residuals(y, args):
     return (pred - uv).reshape(-1)
 
 
-class Calibration(eqx.Module):
+class Calibration(FitResult):
     """Result of :func:`calibrate_camera`.
 
     Attributes:
         K: ``(3, 3)`` intrinsics (zero skew). dist: ``(5,)`` ``(k1, k2, p1, p2, k3)``.
         rvecs, tvecs: ``(N, 3)`` per-view ``camera_from_board`` poses.
-        rms: OpenCV-style RMS reprojection error (px) over all points.
-        per_view_rms: ``(N,)`` the same per view.
+        rms_px: OpenCV-style RMS reprojection error (px) over all points (was ``rms``).
+        per_view_rms_px: ``(N,)`` the same per view (was ``per_view_rms``).
         std: ``(9,)`` standard deviations of ``fx, fy, cx, cy, k1, k2, p1, p2, k3``
           (``(J^T J)^-1 sigma^2``; NaN if ``J^T J`` is singular; 0 for fixed parameters).
         pose_std: ``(N, 6)`` standard deviations of the pose parameters.
         init_K: ``(3, 3)`` Zhang's closed-form intrinsics (before refinement).
         iterations: LM steps. converged: optimistix reported success.
+        reason: code of :data:`fsjax.types.RESULTS`: ``ok`` or ``max_iterations`` (bad input
+          raises before the solve).
         width, height: image size (static).
     """
 
@@ -242,15 +245,20 @@ class Calibration(eqx.Module):
     dist: Float[Array, "5"]
     rvecs: Float[Array, "N 3"]
     tvecs: Float[Array, "N 3"]
-    rms: Float[Array, ""]
-    per_view_rms: Float[Array, " N"]
+    rms_px: Float[Array, ""]
+    per_view_rms_px: Float[Array, " N"]
     std: Float[Array, "9"]
     pose_std: Float[Array, "N 6"]
     init_K: Float[Array, "3 3"]
     iterations: Int[Array, ""]
     converged: Bool[Array, ""]
+    reason: Int[Array, ""]
     width: int = eqx.field(static=True)
     height: int = eqx.field(static=True)
+    residual_name = "rms_px"
+
+    rms = renamed("rms_px")
+    per_view_rms = renamed("per_view_rms_px")
 
     @property
     def params(self) -> dict:
@@ -290,7 +298,7 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
         >>> uv = np.stack([np.asarray(project_board(truth, jnp.asarray(r), jnp.asarray(t), P))
         ...                for r, t in zip(rv, tv)])
         >>> cal = calibrate_camera(P, uv, (640, 480), fix_distortion=True)
-        >>> bool(cal.converged), round(float(cal.K[0, 0]), 6), float(cal.rms) < 1e-8
+        >>> bool(cal.converged), round(float(cal.K[0, 0]), 6), float(cal.rms_px) < 1e-8
         (True, 500.0, True)
     """
     board = np.asarray(board_xyz, np.float64)
@@ -327,9 +335,11 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
     K = jnp.asarray([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]], dt)
     K = K.at[0, 0].set(intr[0]).at[1, 1].set(intr[1]).at[0, 2].set(intr[2]).at[1, 2].set(intr[3])
     return Calibration(
-        K=K, dist=intr[4:9], rvecs=rv, tvecs=tv, rms=jnp.sqrt(jnp.mean(d2)),
-        per_view_rms=jnp.sqrt(jnp.mean(d2, axis=1)), std=sd_full[:9], pose_std=sd_full[9:].reshape(n, 6),
-        init_K=jnp.asarray(K0, dt), iterations=nsteps, converged=ok, width=width, height=height)
+        K=K, dist=intr[4:9], rvecs=rv, tvecs=tv, rms_px=jnp.sqrt(jnp.mean(d2)),
+        per_view_rms_px=jnp.sqrt(jnp.mean(d2, axis=1)), std=sd_full[:9], pose_std=sd_full[9:].reshape(n, 6),
+        init_K=jnp.asarray(K0, dt), iterations=nsteps, converged=ok,
+        reason=jnp.where(ok, reason_code("ok"), reason_code("max_iterations")).astype(jnp.int32),
+        width=width, height=height)
 
 
 @eqx.filter_jit

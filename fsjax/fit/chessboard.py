@@ -31,7 +31,7 @@ because it is a data-dependent graph search):
    it do not continue the checker (:func:`_board_check`). A miscounted pattern therefore fails
    like ``cv2.findChessboardCorners`` does: a window inside a larger board, or one that takes
    in the L-shaped corners of the board's border, is refused. Of several whole-board windows
-   the one with the largest total response wins. Nothing found gives ``found=False`` with a
+   the one with the largest total response wins. Nothing found gives ``converged=False`` with a
    reason and NaN corners: never a partial grid.
 3. **Sub-pixel refinement** by the gradient-orthogonality condition (Forstner and
    Gulch 1987; the criterion of OpenCV's ``cornerSubPix``): for the true corner ``q`` and
@@ -58,18 +58,25 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..ops.measure2d._caliper import bilinear
+from ..types.results import FitResult, reason_code, reason_message, renamed
 
 __all__ = ["ChessboardCorners", "saddle_response", "refine_corners", "find_chessboard", "board_points"]
 
 
-class ChessboardCorners(eqx.Module):
+class ChessboardCorners(FitResult):
     """Result of :func:`find_chessboard`.
+
+    A fit result (base fields ``converged``, ``reason``, ``iterations``) without a residual:
+    the detector measures corners, it does not minimise one error over the board (the
+    per-corner sub-pixel ``shift`` is reported instead; ``residual_name`` is ``None``).
 
     Attributes:
         corners: ``(nx * ny, 2)`` sub-pixel ``(u, v)`` corners, row-major (NaN when not found).
-        found: the full grid was found.
-        reason: ``""`` when found, else why not (``"too few saddle candidates"``,
-          ``"no complete 9x6 grid"``...).
+        converged: the full grid was found (was ``found``).
+        reason: code of :data:`fsjax.types.RESULTS`: ``ok``, ``not_found`` (no saddle response,
+          too few candidates, no complete grid), ``pattern_mismatch`` or ``refinement_failed``.
+        detail: ``""`` when found, else the specific why-not text (static; was the string
+          ``reason``: ``"too few saddle candidates (40 < 54)"``...).
         n_candidates: saddle candidates after non-maximum suppression.
         iterations: ``(nx * ny,)`` sub-pixel iterations used per corner.
         shift: ``(nx * ny,)`` distance (px) the sub-pixel stage moved each corner from
@@ -77,11 +84,20 @@ class ChessboardCorners(eqx.Module):
     """
 
     corners: Float[Array, "n 2"]
-    found: Bool[Array, ""]
-    reason: str = eqx.field(static=True)
+    converged: Bool[Array, ""]
+    reason: Int[Array, ""]
+    detail: str = eqx.field(static=True)
     n_candidates: int = eqx.field(static=True)
     iterations: Int[Array, " n"]
     shift: Float[Array, " n"]
+
+    found = renamed("converged")
+
+    @property
+    def message(self) -> str:
+        """The reason's text, then the specific ``detail`` (``"ok"`` when found)."""
+        base = reason_message(self.reason)
+        return f"{base}: {self.detail}" if self.detail else base
 
 
 def board_points(pattern=(9, 6), square: float = 1.0) -> np.ndarray:
@@ -408,7 +424,7 @@ def find_chessboard(img, pattern=(9, 6), *, sigma: float = 2.0, nms: int = 4, re
       tol: a predicted neighbour accepts a candidate within ``tol`` times the local spacing.
 
     Returns:
-      :class:`ChessboardCorners`; ``found=False`` with a ``reason`` and NaN corners when no
+      :class:`ChessboardCorners`; ``converged=False`` with a ``reason`` and NaN corners when no
       complete grid is found, when ``pattern`` does not match the board (a board with more
       or fewer inner corners than ``pattern``, as OpenCV refuses it), or a corner fails to
       refine. ``pattern`` and its transpose are the same board (the ordering follows the
@@ -424,7 +440,7 @@ def find_chessboard(img, pattern=(9, 6), *, sigma: float = 2.0, nms: int = 4, re
         >>> inside = (xx > 10.5) & (xx < 10.5 + 16 * 8) & (yy > 12.5) & (yy < 12.5 + 16 * 6)
         >>> img = np.where(inside, sq, 0.9)
         >>> res = find_chessboard(img, (7, 5), win=5)
-        >>> bool(res.found), [round(float(v), 2) for v in res.corners[0]]
+        >>> bool(res.converged), [round(float(v), 2) for v in res.corners[0]]
         (True, [26.5, 28.5])
     """
     nx, ny = int(pattern[0]), int(pattern[1])
@@ -438,9 +454,9 @@ def find_chessboard(img, pattern=(9, 6), *, sigma: float = 2.0, nms: int = 4, re
     n = nx * ny
     dt = jnp.result_type(float)
 
-    def fail(reason, ncand):
-        return ChessboardCorners(jnp.full((n, 2), jnp.nan, dt), jnp.asarray(False), reason, ncand,
-                                 jnp.zeros((n,), jnp.int32), jnp.full((n,), jnp.nan, dt))
+    def fail(detail, ncand, why="not_found"):
+        return ChessboardCorners(jnp.full((n, 2), jnp.nan, dt), jnp.asarray(False), jnp.int32(reason_code(why)),
+                                 detail, ncand, jnp.zeros((n,), jnp.int32), jnp.full((n,), jnp.nan, dt))
 
     resp = np.asarray(saddle_response(a, sigma=sigma))
     if not np.all(np.isfinite(resp)) or resp.max() <= 0:
@@ -467,10 +483,10 @@ def find_chessboard(img, pattern=(9, 6), *, sigma: float = 2.0, nms: int = 4, re
             break
         why = why or bad  # the reason of the strongest window
     if coarse is None:
-        return fail(f"pattern {nx}x{ny} does not match the board: {why}", len(p))
+        return fail(f"pattern {nx}x{ny} does not match the board: {why}", len(p), "pattern_mismatch")
     q, it = refine_corners(a, coarse, win=win)
     if not bool(jnp.all(jnp.isfinite(q))):
-        return fail("sub-pixel refinement failed at some corner", len(p))
+        return fail("sub-pixel refinement failed at some corner", len(p), "refinement_failed")
     shift = jnp.linalg.norm(q - jnp.asarray(coarse, q.dtype), axis=1)
     # a corner that slid onto a neighbour: refined corners must keep at least a third of the
     # smallest coarse lattice spacing between them
@@ -479,5 +495,6 @@ def find_chessboard(img, pattern=(9, 6), *, sigma: float = 2.0, nms: int = 4, re
     spacing = min(np.linalg.norm(np.diff(gc, axis=0), axis=-1).min(), np.linalg.norm(np.diff(gc, axis=1), axis=-1).min())
     dq = np.linalg.norm(grid_q.reshape(-1, 1, 2) - grid_q.reshape(1, -1, 2), axis=-1) + np.eye(n) * 1e9
     if dq.min() < spacing / 3.0:
-        return fail("sub-pixel refinement merged neighbouring corners", len(p))
-    return ChessboardCorners(q, jnp.asarray(True), "", len(p), it.astype(jnp.int32), shift)
+        return fail("sub-pixel refinement merged neighbouring corners", len(p), "refinement_failed")
+    return ChessboardCorners(q, jnp.asarray(True), jnp.int32(reason_code("ok")), "", len(p), it.astype(jnp.int32),
+                             shift)

@@ -23,18 +23,26 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
+from ..types.results import renamed
+
 __all__ = ["FrameSelection", "select_frames_by_rotation", "quaternion_angle_deg"]
 
 
 class FrameSelection(eqx.Module):
     """Kept frame ``indices`` (sorted), a ``keep`` mask ``(N,)``, the per-step angles
-    ``step_deg (N,)`` (``step_deg[0] = 0``), and ``reason (N,)`` per kept frame: 0 first
-    frame, 1 rotation threshold, 2 maximum gap, -1 not kept."""
+    ``step_deg (N,)`` (``step_deg[0] = 0``), and ``why_kept (N,)`` per frame: 0 first
+    frame, 1 rotation threshold, 2 maximum gap, -1 not kept (was ``reason``).
+
+    Not a fit result: a deterministic selection rule applied to a pose stream (NumPy,
+    eager); nothing is estimated, nothing can fail to converge, so it has no ``converged``,
+    ``reason`` or residual (bad input raises)."""
 
     indices: np.ndarray
     keep: np.ndarray
     step_deg: np.ndarray
-    reason: np.ndarray
+    why_kept: np.ndarray
+
+    reason = renamed("why_kept")
 
 
 def _normalised(quats, fn):
@@ -123,4 +131,4 @@ def select_frames_by_rotation(quats, *, threshold_deg: float = 10.0, min_gap: in
             keep[i], reason[i] = True, 1
         if keep[i]:
             last, acc = i, 0.0
-    return FrameSelection(indices=np.flatnonzero(keep), keep=keep, step_deg=step, reason=reason)
+    return FrameSelection(indices=np.flatnonzero(keep), keep=keep, step_deg=step, why_kept=reason)

@@ -13,7 +13,7 @@ Conventions are those of :mod:`fsjax.fit.rigid` (``target = R source + t``; reas
   paper adds ``(1/k) sum SPFH(q_k) / omega_k`` with ``omega_k`` the distance, whose scale depends
   on the length unit; normalising the weights makes the descriptor unit-free (Open3D normalises
   its histograms to sum 100 instead).
-* Normals are PCA normals of the ``normal_k`` nearest points (:func:`fsjax.fit.estimate_normals`)
+* Normals are PCA normals of the ``normal_k`` nearest points (:func:`fsjax.ops.estimate_normals`)
   oriented away from the cloud centroid, a rotation-invariant rule (normals nearly tangent to
   the radial direction can flip between two crops; RANSAC tolerates those points).
 * Neighbours within ``radius`` come from the ``capacity`` nearest ones; a point whose
@@ -39,10 +39,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ..types import Points
+from .._checks import check_positive, check_static_int
+from ..ops import estimate_normals
 from ..ops.points._search import _BRUTE_LIMIT, build_index
-from .icp import ICPResult, _as_cloud, estimate_normals, icp, knn
-from .rigid import NO_HYPOTHESIS, OK, TOO_FEW, _weighted_kabsch, kabsch_umeyama, reason_message
+from ..types import Points
+from ..types.results import FitResult, WrappedFit
+from ._cloud import as_cloud
+from .icp import ICPResult, _knn, icp
+from .rigid import NO_HYPOTHESIS, OK, TOO_FEW, _weighted_kabsch, kabsch_umeyama
 
 __all__ = ["fpfh", "match_descriptors", "CorrespondenceRansacResult", "ransac_registration", "GlobalResult",
            "global_registration"]
@@ -86,12 +90,12 @@ def _hist(vals, lo, hi, mask):
 @functools.partial(jax.jit, static_argnames=("capacity", "normal_k"))
 def _fpfh_core(xyz, valid, normals, radius, *, capacity, normal_k):
     if normals is None:
-        normals = estimate_normals(xyz, valid, k=normal_k)
+        normals = estimate_normals(Points(xyz, valid=valid), k=normal_k).normals
         c = jnp.sum(jnp.where(valid[:, None], xyz, 0.0), 0) / jnp.maximum(jnp.sum(valid), 1)
         normals = normals * jnp.where(jnp.sum(normals * (xyz - c), -1) < 0, -1.0, 1.0)[:, None]
     nok = valid & jnp.all(jnp.isfinite(normals), -1)
     normals = jnp.where(nok[:, None], normals, 0.0)
-    idx, d2 = knn(xyz, xyz, capacity + 1, ref_valid=nok)  # includes the point itself
+    idx, d2 = _knn(xyz, xyz, capacity + 1, ref_valid=nok)  # includes the point itself
     idx, d2 = idx[:, 1:], d2[:, 1:]
     inr = (idx >= 0) & (d2 <= radius**2) & (d2 > 0)
     truncated = inr[:, -1]
@@ -137,14 +141,10 @@ def fpfh(
         (True, True)
     """
     fn = "fpfh"
-    xyz, valid, normals = _as_cloud(points, "points", fn)
-    try:
-        if not float(radius) > 0:
-            raise ValueError(f"{fn}(radius=...): expected a positive radius, got {radius!r}")
-    except (TypeError, jax.errors.ConcretizationTypeError):
-        pass
-    if not isinstance(capacity, int) or capacity < 3:
-        raise ValueError(f"{fn}(capacity=...): expected a static int >= 3, got {capacity!r}")
+    xyz, valid, normals = as_cloud(fn, "points", points)
+    check_positive(fn, "radius", radius)
+    capacity = check_static_int(fn, "capacity", capacity, lo=3)
+    normal_k = check_static_int(fn, "normal_k", normal_k, lo=3, hi=32)
     nrm = None if normals is None else jnp.asarray(normals, xyz.dtype)
     return _fpfh_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=int(normal_k))
 
@@ -157,26 +157,31 @@ def match_descriptors(desc_src, desc_tgt, valid_src=None, valid_tgt=None, *, mut
     ds, dt = jnp.asarray(desc_src), jnp.asarray(desc_tgt)
     vs = jnp.ones(ds.shape[0], bool) if valid_src is None else jnp.asarray(valid_src, bool)
     vt = jnp.ones(dt.shape[0], bool) if valid_tgt is None else jnp.asarray(valid_tgt, bool)
-    i_st, _ = knn(dt, ds, 1, ref_valid=vt)
+    i_st, _ = _knn(dt, ds, 1, ref_valid=vt)
     i_st = i_st[:, 0]
     ok = vs & (i_st >= 0)
     if mutual:
-        i_ts, _ = knn(ds, dt, 1, ref_valid=vs)
+        i_ts, _ = _knn(ds, dt, 1, ref_valid=vs)
         ok = ok & (i_ts[jnp.maximum(i_st, 0), 0] == jnp.arange(ds.shape[0]))
     return jnp.maximum(i_st, 0).astype(jnp.int32), ok
 
 
-class CorrespondenceRansacResult(eqx.Module):
+class CorrespondenceRansacResult(FitResult):
     """Result of :func:`ransac_registration` (``target ~ R source + t``).
 
     Attributes:
         R, t: best pose refitted on its inliers (NaN when ``reason != 0``).
+        rms_len: RMS distance of the inlier pairs at the RANSAC pose (input length unit; NaN
+            when not ``converged``). Like ``n_inliers`` it is not updated by the point refits of
+            :func:`global_registration`, which move ``R``, ``t``.
+        iterations: hypotheses drawn (``n_hypotheses``).
         n_matches: candidate correspondences.
         n_inliers: matches within ``distance`` at the returned pose.
         inlier_fraction: ``n_inliers / n_matches``.
         n_checked: hypotheses that passed the edge-length check.
         converged: a hypothesis with at least ``min_inliers`` inliers was found.
-        reason: 0, 2 (fewer than 3 matches) or 6 (no consistent hypothesis).
+        reason: code of :data:`fsjax.types.RESULTS`: ``ok``, ``too_few`` (fewer than 3 matches)
+            or ``no_hypothesis``.
     """
 
     R: Float[Array, "3 3"]
@@ -187,10 +192,9 @@ class CorrespondenceRansacResult(eqx.Module):
     n_checked: Int[Array, ""]
     converged: Bool[Array, ""]
     reason: Int[Array, ""]
-
-    @property
-    def message(self) -> str:
-        return reason_message(self.reason)
+    rms_len: Float[Array, ""] = None
+    iterations: Int[Array, ""] = None
+    residual_name = "rms_len"
 
 
 @functools.partial(jax.jit, static_argnames=("n_hypotheses", "min_inliers"))
@@ -223,11 +227,13 @@ def _ransac_core(key, ps, pt, ok, distance, edge_ratio, *, n_hypotheses, min_inl
         res = ps @ r.T + t - pt
         inl = ok & (jnp.sum(res * res, -1) <= distance**2)
         fit = kabsch_umeyama(ps, pt, weights=inl.astype(dtype))
-        r = jnp.where(fit.valid, fit.R, r)
-        t = jnp.where(fit.valid, fit.t, t)
+        r = jnp.where(fit.converged, fit.R, r)
+        t = jnp.where(fit.converged, fit.t, t)
     res = ps @ r.T + t - pt
-    inl = ok & (jnp.sum(res * res, -1) <= distance**2)
+    d2 = jnp.sum(res * res, -1)
+    inl = ok & (d2 <= distance**2)
     n_in = jnp.sum(inl)
+    rms = jnp.sqrt(jnp.sum(jnp.where(inl, d2, 0.0)) / jnp.maximum(n_in, 1))
     reason = jnp.where(n_match < 3, TOO_FEW, jnp.where((score[best] < min_inliers) | (n_in < min_inliers),
                                                        NO_HYPOTHESIS, OK))
     good = reason == OK
@@ -236,7 +242,8 @@ def _ransac_core(key, ps, pt, ok, distance, edge_ratio, *, n_hypotheses, min_inl
                         n_inliers=n_in.astype(jnp.int32),
                         inlier_fraction=(n_in / jnp.maximum(n_match, 1)).astype(dtype),
                         n_checked=jnp.sum(checked).astype(jnp.int32), converged=good,
-                        reason=reason.astype(jnp.int32))
+                        reason=reason.astype(jnp.int32), rms_len=jnp.where(good, rms, nan),
+                        iterations=jnp.asarray(n_hypotheses, jnp.int32))
 
 
 def ransac_registration(
@@ -262,11 +269,11 @@ def ransac_registration(
         min_inliers: fewer inliers at the best hypothesis -> reason 6 (static int).
     """
     fn = "ransac_registration"
-    if not isinstance(n_hypotheses, int) or n_hypotheses < 1:
-        raise ValueError(f"{fn}(n_hypotheses=...): expected a static int >= 1, got {n_hypotheses!r}")
+    n_hypotheses = check_static_int(fn, "n_hypotheses", n_hypotheses, lo=1)
     ps, pt = jnp.asarray(src_xyz), jnp.asarray(tgt_xyz)
     if ps.ndim != 2 or ps.shape[-1] != 3 or pt.shape != ps.shape:
-        raise ValueError(f"{fn}(src_xyz, tgt_xyz): expected two (N, 3) arrays, got {ps.shape} and {pt.shape}")
+        raise ValueError(f"{fn}: arguments 'src_xyz', 'tgt_xyz' must be two (N, 3) arrays of equal shape, "
+                         f"got {tuple(ps.shape)} and {tuple(pt.shape)}")
     dtype = jnp.result_type(ps.dtype, pt.dtype, jnp.float32)
     ok = jnp.asarray(match_ok, bool) & jnp.all(jnp.isfinite(ps) & jnp.isfinite(pt), -1)
     ps = jnp.where(ok[:, None], ps, 0.0).astype(dtype)
@@ -275,14 +282,24 @@ def ransac_registration(
                         n_hypotheses=n_hypotheses, min_inliers=int(min_inliers))
 
 
-class GlobalResult(eqx.Module):
-    """Result of :func:`global_registration`: the RANSAC pose and the ICP-refined one."""
+class GlobalResult(WrappedFit):
+    """Result of :func:`global_registration`: the RANSAC pose and the ICP-refined one.
+
+    The base fields (``converged``, ``reason``, ``iterations``, ``rms_len``) are those of
+    ``refined`` (which carries the coarse stage's failure when RANSAC failed).
+    """
 
     coarse: CorrespondenceRansacResult
     refined: ICPResult
     coarse_matches_R: Float[Array, "3 3"]
     n_descriptors: Int[Array, ""]
     n_truncated: Int[Array, ""]
+    residual_name = "rms_len"
+    inner = "refined"
+
+    @property
+    def rms_len(self):
+        return self.refined.rms_len
 
 
 def global_registration(
@@ -325,15 +342,15 @@ def global_registration(
     """
     fs, vs, trs = fpfh(source, radius=radius, capacity=capacity)
     ft, vt, trt = fpfh(target, radius=radius, capacity=capacity)
-    xs, _, _ = _as_cloud(source, "source", "global_registration")
-    xt, _, _ = _as_cloud(target, "target", "global_registration")
+    xs, _, _ = as_cloud("global_registration", "source", source)
+    xt, _, _ = as_cloud("global_registration", "target", target)
     idx, ok = match_descriptors(fs, ft, vs, vt, mutual=mutual)
     coarse = ransac_registration(key, xs, xt[idx], ok, distance=distance, n_hypotheses=n_hypotheses)
     r_matches = coarse.R
     if refit_rounds:
         coarse = _point_refit(coarse, xs, xt, jnp.asarray(0.5 * distance, xs.dtype), int(refit_rounds))
     if refine is None:
-        refined = ICPResult(R=coarse.R, t=coarse.t, rmse=jnp.asarray(jnp.nan, xs.dtype),
+        refined = ICPResult(R=coarse.R, t=coarse.t, rms_len=jnp.asarray(jnp.nan, xs.dtype),
                             iterations=jnp.int32(0), converged=coarse.converged,
                             inlier_fraction=coarse.inlier_fraction, n_correspondences=coarse.n_inliers,
                             reason=coarse.reason)
@@ -355,10 +372,10 @@ def _point_refit(coarse, xs, xt, distance, rounds):
     index = build_index(xt, k=4) if xs.shape[0] * xt.shape[0] > _BRUTE_LIMIT else None  # built once
     for _ in range(rounds):
         p = xs @ r.T + t
-        j, d2 = knn(xt, p, 1, index=index)
+        j, d2 = _knn(xt, p, 1, index=index)
         fit = kabsch_umeyama(xs, xt[jnp.maximum(j[:, 0], 0)], weights=(d2[:, 0] <= distance**2).astype(xs.dtype))
-        r = jnp.where(fit.valid, fit.R, r)
-        t = jnp.where(fit.valid, fit.t, t)
+        r = jnp.where(fit.converged, fit.R, r)
+        t = jnp.where(fit.converged, fit.t, t)
     return eqx.tree_at(lambda c: (c.R, c.t), coarse, (r, t))
 
 

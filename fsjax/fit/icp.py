@@ -38,7 +38,7 @@ rotation error 0.00240 deg (point-to-plane) and 0.00185 deg (GICP) in float32 an
 (equal to 1e-6 deg); point-to-point 0.0426 deg in float32 (converged, 47 iterations) vs 0.0430 deg
 in float64 (50 iterations, the cap).
 
-The record's ``rmse`` is the RMS point distance of the final (trimmed) correspondences,
+The record's ``rms_len`` is the RMS point distance of the final (trimmed) correspondences,
 ``inlier_fraction`` the fraction of valid source points whose nearest target point is within
 ``inlier_distance`` (default: 3 x the target's median nearest-neighbour spacing). A run whose
 increment converged but whose ``inlier_fraction`` is below ``min_inlier_fraction`` reports
@@ -47,14 +47,15 @@ increment converged but whose ``inlier_fraction`` is below ``min_inlier_fraction
 Failing closed: empty or all-invalid clouds (reason 4), fewer valid points than the model needs (3 for
 point-to-point, 6 otherwise; reason 2), non-finite coordinates among the valid points (reason 4),
 too few correspondences within the distance gate (reason 2) or singular normal equations / collinear
-pairs (reason 3) give NaN pose, NaN rmse and ``converged=False``.
+pairs (reason 3) give NaN pose, NaN ``rms_len`` and ``converged=False``.
 
 Neighbour search: one index of the target, built once per call and reused by every iteration
 inside the compiled loop, and by the normals / covariances / spacing pass
 (:func:`fsjax.ops.build_index`, a sorted-cell grid with two coarser levels for the far queries of
 the first iterations; exact, equal to ``cKDTree``). Small problems (``N M <= 2**22``) use the
 same module's blocked brute force instead (same answers, cheaper to compile). No (N, M) array is
-formed anywhere. :func:`knn` here delegates to that one implementation.
+formed anywhere. The public k-NN is :func:`fsjax.ops.knn`; the fits' private dispatcher
+(:func:`_knn`, any dimension, a reusable index) calls the same implementation.
 """
 
 from __future__ import annotations
@@ -62,12 +63,12 @@ from __future__ import annotations
 import functools
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._checks import check_choice, check_range, check_static_int, is_concrete
 from ..ops.points._search import (
     _BRUTE_LIMIT,
     GridIndex,
@@ -80,6 +81,8 @@ from ..ops.points._search import (
     query_knn,
 )
 from ..types import Points
+from ..types.results import FitResult, WrappedFit, deprecated_name, renamed
+from ._cloud import as_cloud
 from .rigid import (
     DEGENERATE,
     INVALID,
@@ -88,13 +91,11 @@ from .rigid import (
     OK,
     TOO_FEW,
     _weighted_kabsch,
-    reason_message,
     rotation_angle_deg,
     se3_exp,
 )
 
-__all__ = ["ICPResult", "icp", "MultiStartResult", "icp_multistart", "rotation_grid", "knn",
-           "estimate_normals", "local_covariances"]
+__all__ = ["ICPResult", "icp", "MultiStartResult", "icp_multistart", "rotation_grid", "local_covariances"]
 
 _METHODS = ("point_to_point", "point_to_plane", "gicp")
 
@@ -104,8 +105,8 @@ _METHODS = ("point_to_point", "point_to_plane", "gicp")
 # ---------------------------------------------------------------------------
 
 
-def knn(ref_xyz, query_xyz, k: int, *, ref_valid=None, index: GridIndex | None = None):
-    """Exact k nearest neighbours of each query point among the valid reference points.
+def _knn(ref_xyz, query_xyz, k: int, *, ref_valid=None, index: GridIndex | None = None):
+    """Exact k nearest neighbours of each query point among the valid reference points (fits only).
 
     One implementation with :func:`fsjax.ops.knn`: 3-D points go through the sorted-cell grid
     (:func:`fsjax.ops.build_index` / :func:`fsjax.ops.query_knn`, exact, equal to
@@ -141,7 +142,7 @@ def knn(ref_xyz, query_xyz, k: int, *, ref_valid=None, index: GridIndex | None =
 
 def _neighbour_cov(xyz, valid, k: int, index=None):
     """Covariance (3, 3) of each point's k nearest valid neighbours (incl. itself) and the count used."""
-    idx, _ = knn(xyz, xyz, k, ref_valid=valid, index=index)
+    idx, _ = _knn(xyz, xyz, k, ref_valid=valid, index=index)
     return _cov_from_idx(xyz, idx)
 
 
@@ -164,8 +165,11 @@ def _cov_from_idx(xyz, idx):
     return cov, cnt
 
 
-def estimate_normals(xyz, valid=None, *, k: int = 10, index: GridIndex | None = None):
+def _estimate_normals(xyz, valid=None, *, k: int = 10, index: GridIndex | None = None):
     """Unit PCA normals: eigenvector of the smallest eigenvalue of the k-neighbour covariance.
+
+    Private (the public path is :func:`fsjax.ops.estimate_normals`); kept for the deprecated
+    ``fsjax.fit.estimate_normals``.
 
     The sign is arbitrary (point-to-plane residuals do not depend on it). Points with fewer than
     3 valid neighbours get NaN normals. ``index``: the cloud's index, reused when given.
@@ -194,68 +198,49 @@ def local_covariances(xyz, valid=None, *, k: int = 20, eps: float = 1e-3, index:
 # ---------------------------------------------------------------------------
 
 
-class ICPResult(eqx.Module):
+class ICPResult(FitResult):
     """Result of :func:`icp` (``target ~ R source + t``).
 
     Attributes:
         R: ``(3, 3)`` rotation (NaN on bad input or degenerate geometry).
         t: ``(3,)`` translation (same).
-        rmse: RMS distance of the final trimmed correspondences.
+        rms_len: RMS distance of the final trimmed correspondences (input length unit; was ``rmse``).
         iterations: outer iterations run.
         converged: the increment fell below tolerance, the fit is valid and the inlier fraction
             reaches ``min_inlier_fraction``.
         inlier_fraction: fraction of valid source points with a target point within
             ``inlier_distance`` at the final pose (the fitness).
         n_correspondences: pairs used in the last iteration.
-        reason: int32 code of :data:`fsjax.fit.rigid.REGISTRATION_REASONS`.
+        reason: int32 code of :data:`fsjax.types.RESULTS`; ``message`` its text.
     """
 
     R: Float[Array, "*b 3 3"]
     t: Float[Array, "*b 3"]
-    rmse: Float[Array, "*b"]
+    rms_len: Float[Array, "*b"]
     iterations: Int[Array, "*b"]
     converged: Bool[Array, "*b"]
     inlier_fraction: Float[Array, "*b"]
     n_correspondences: Int[Array, "*b"]
     reason: Int[Array, "*b"]
+    residual_name = "rms_len"
 
-    @property
-    def message(self) -> str:
-        """Text of ``reason`` (a single, unbatched result)."""
-        return reason_message(self.reason)
+    rmse = renamed("rms_len")
 
 
 def _as_cloud(x, name: str, fn: str):
-    if isinstance(x, Points):
-        xyz, valid, normals = x.xyz, x.valid, x.normals
-    else:
-        xyz, valid, normals = jnp.asarray(x), None, None
-    if xyz.ndim != 2 or xyz.shape[-1] != 3:
-        raise ValueError(f"{fn}({name}): expected Points or an (N, 3) array, got shape {xyz.shape}")
-    if xyz.shape[0] == 0:
-        raise ValueError(f"{fn}({name}): empty cloud (0 points)")
-    xyz = xyz.astype(jnp.result_type(xyz.dtype, jnp.float32))
-    valid = jnp.ones(xyz.shape[0], bool) if valid is None else jnp.asarray(valid, bool)
-    return xyz, valid, normals
+    """The fits' one cloud helper (:func:`fsjax.fit._cloud.as_cloud`), argument order of the ICP modules."""
+    return as_cloud(fn, name, x)
 
 
-def _check_method(method: str, fn: str):
-    if method not in _METHODS:
-        raise ValueError(f"{fn}(method=...): expected one of {_METHODS}, got {method!r}")
-
-
-def _check_static_pos_int(v, name: str, fn: str):
-    if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
-        raise ValueError(f"{fn}({name}=...): expected a static int >= 1, got {v!r}")
-
-
-def _check_num(v, name: str, fn: str, lo: float, hi: float, lo_open=False):
-    try:
-        f = float(v)
-    except (TypeError, jax.errors.ConcretizationTypeError):
-        return
-    if not (f > lo if lo_open else f >= lo) or f > hi or math.isnan(f):
-        raise ValueError(f"{fn}({name}=...): expected a value in {'(' if lo_open else '['}{lo}, {hi}], got {v!r}")
+def _check_distance(fn: str, name: str, v):
+    """A distance in ``(0, inf]`` (``inf`` = no gate); traced values pass."""
+    if is_concrete(v) and not isinstance(v, (str, bytes)):
+        try:
+            if float(v) == float("inf"):
+                return
+        except (TypeError, ValueError):
+            pass
+    check_range(fn, name, v, 0.0, None, lo_open=True)
 
 
 # ---------------------------------------------------------------------------
@@ -469,7 +454,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     nan = jnp.asarray(jnp.nan, dtype)
     t_out = scale * t + c - r @ c
     return ICPResult(
-        R=jnp.where(failed, nan, r), t=jnp.where(failed, nan, t_out), rmse=jnp.where(failed, nan, rmse),
+        R=jnp.where(failed, nan, r), t=jnp.where(failed, nan, t_out), rms_len=jnp.where(failed, nan, rmse),
         iterations=it, converged=reason == OK, inlier_fraction=jnp.where(reason == INVALID, 0.0, inl).astype(dtype),
         n_correspondences=jnp.where(bad != OK, n_ok, n_fin).astype(jnp.int32), reason=reason.astype(jnp.int32),
     )
@@ -535,19 +520,19 @@ def icp(
         (True, True)
     """
     fn = "icp"
-    _check_method(method, fn)
+    check_choice(fn, "method", method, _METHODS)
     for nm, v in (("max_iterations", max_iterations), ("inner_steps", inner_steps), ("normal_k", normal_k),
                   ("cov_k", cov_k)):
-        _check_static_pos_int(v, nm, fn)
-    _check_num(overlap, "overlap", fn, 0.0, 1.0, lo_open=True)
-    _check_num(max_correspondence_distance, "max_correspondence_distance", fn, 0.0, float("inf"), lo_open=True)
+        check_static_int(fn, nm, v, lo=1)
+    check_range(fn, "overlap", overlap, 0.0, 1.0, lo_open=True)
+    _check_distance(fn, "max_correspondence_distance", max_correspondence_distance)
     if min_inlier_fraction is None:
         min_inlier_fraction = 0.9 * overlap
-    _check_num(min_inlier_fraction, "min_inlier_fraction", fn, 0.0, 1.0)
+    check_range(fn, "min_inlier_fraction", min_inlier_fraction, 0.0, 1.0)
     if inlier_distance is not None:
-        _check_num(inlier_distance, "inlier_distance", fn, 0.0, float("inf"), lo_open=True)
-    src, sv, _ = _as_cloud(source, "source", fn)
-    tgt, tv, tn = _as_cloud(target, "target", fn)
+        _check_distance(fn, "inlier_distance", inlier_distance)
+    src, sv, _ = as_cloud(fn, "source", source)
+    tgt, tv, tn = as_cloud(fn, "target", target)
     dtype = jnp.result_type(src.dtype, tgt.dtype)
     src, tgt = src.astype(dtype), tgt.astype(dtype)
     r0 = jnp.eye(3, dtype=dtype) if init_R is None else jnp.asarray(init_R, dtype)
@@ -576,7 +561,7 @@ def rotation_grid(n: int = 24, dtype=None) -> Float[Array, "n 3 3"]:
     (Alexa 2022) for a denser cover.
     """
     if not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"rotation_grid(n=...): expected an int >= 1, got {n!r}")
+        raise ValueError(f"rotation_grid: argument 'n' must be an int >= 1, got {n!r}")
     mats = []
     import itertools
     for perm in itertools.permutations(range(3)):
@@ -605,12 +590,21 @@ def rotation_grid(n: int = 24, dtype=None) -> Float[Array, "n 3 3"]:
     return jnp.asarray(mats[:n], dtype=dtype or jnp.result_type(float))
 
 
-class MultiStartResult(eqx.Module):
-    """Result of :func:`icp_multistart`: the best start, its index and every start's record (batched)."""
+class MultiStartResult(WrappedFit):
+    """Result of :func:`icp_multistart`: the best start, its index and every start's record (batched).
+
+    The base fields (``converged``, ``reason``, ``iterations``, ``rms_len``) are those of ``best``.
+    """
 
     best: ICPResult
     index: Int[Array, ""]
     starts: ICPResult
+    residual_name = "rms_len"
+    inner = "best"
+
+    @property
+    def rms_len(self):
+        return self.best.rms_len
 
 
 def icp_multistart(
@@ -625,7 +619,7 @@ def icp_multistart(
 
     Each start ``R0`` rotates the source about its centroid onto the target centroid
     (``t0 = c_target - R0 c_source``). The best start maximises ``inlier_fraction`` (ties broken by
-    the smaller ``rmse``); failed starts (NaN) never win.
+    the smaller ``rms_len``); failed starts (NaN) never win.
 
     Args:
         source, target: as :func:`icp`.
@@ -637,12 +631,12 @@ def icp_multistart(
         :class:`MultiStartResult`; ``best.converged`` is that start's own flag.
     """
     fn = "icp_multistart"
-    _check_method(method, fn)
-    src, sv, _ = _as_cloud(source, "source", fn)
-    tgt, tv, tn = _as_cloud(target, "target", fn)
+    check_choice(fn, "method", method, _METHODS)
+    src, sv, _ = as_cloud(fn, "source", source)
+    tgt, tv, tn = as_cloud(fn, "target", target)
     rots = rotation_grid(24, src.dtype) if rotations is None else jnp.asarray(rotations, src.dtype)
     if rots.ndim != 3 or rots.shape[1:] != (3, 3):
-        raise ValueError(f"{fn}(rotations=...): expected (S, 3, 3), got {rots.shape}")
+        raise ValueError(f"{fn}: argument 'rotations' must have shape (S, 3, 3), got {tuple(rots.shape)}")
     cs = jnp.sum(jnp.where(sv[:, None], jnp.nan_to_num(src), 0.0), 0) / jnp.maximum(jnp.sum(sv), 1)
     ct = jnp.sum(jnp.where(tv[:, None], jnp.nan_to_num(tgt), 0.0), 0) / jnp.maximum(jnp.sum(tv), 1)
     tcloud = target if isinstance(target, Points) else tgt
@@ -652,7 +646,7 @@ def icp_multistart(
                    init_t=ct - r0 @ cs, **kwargs)
 
     res = jax.vmap(one)(rots)
-    score = jnp.where(jnp.isfinite(res.rmse), res.inlier_fraction - 1e-9 * res.rmse, -jnp.inf)
+    score = jnp.where(jnp.isfinite(res.rms_len), res.inlier_fraction - 1e-9 * res.rms_len, -jnp.inf)
     k = jnp.argmax(score)
     best = jax.tree_util.tree_map(lambda a: a[k], res)
     return MultiStartResult(best=best, index=k.astype(jnp.int32), starts=res)
@@ -674,3 +668,13 @@ def _bunny_points(n: int, seed: int = 0) -> np.ndarray:
     r1, r2 = rng.random(n), rng.random(n)
     s = np.sqrt(r1)
     return (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
+
+
+def __getattr__(name):
+    if name == "knn":
+        deprecated_name("fsjax.fit.knn", "fsjax.ops.knn")
+        return _knn
+    if name == "estimate_normals":
+        deprecated_name("fsjax.fit.estimate_normals", "fsjax.ops.estimate_normals (takes Points; pass k)")
+        return _estimate_normals
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -10,7 +10,7 @@ Conventions:
   :class:`fsjax.Camera` used everywhere else in fsjax.
 * Fail closed: fewer than 6 points, or (nearly) coplanar points (the DLT of a 3x4 matrix
   needs non-coplanar points: all coplanar configurations leave a 3-dimensional family of
-  solutions), give ``valid=False``, NaN pose and a ``reason`` code (:data:`PNP_REASONS`).
+  solutions), give ``converged=False``, NaN pose and a ``reason`` code of :data:`fsjax.types.RESULTS`.
   Coplanarity is measured by the ratio of the smallest to the largest singular value of
   the centred points (< ``1e-3``).
 
@@ -33,32 +33,39 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ..render.camera import project
 from ..types import Camera
+from ..types.results import FitResult, Legacy, deprecated_name, reason_code
 from .calibrate import rodrigues
 from .twoview import normalized_points
 
-__all__ = ["PNP_REASONS", "PnPResult", "pnp_dlt", "solve_pnp", "solve_pnp_ransac"]
+__all__ = ["PnPResult", "pnp_dlt", "solve_pnp", "solve_pnp_ransac"]
 
-PNP_REASONS = (
-    "ok",
-    "too few points (need 6)",
-    "coplanar points (the DLT needs non-coplanar 3-D points)",
-    "too few RANSAC inliers (need 6)",
-    "non-finite input",
-)
+#: the old PnP codes 0..4 (deprecated ``legacy_reason`` and ``PNP_REASONS``)
+_LEGACY = Legacy(("ok", "too_few", "coplanar", "too_few_inliers", "invalid_input"), also={"max_iterations": 0})
+_OK, _MAX_ITER = reason_code("ok"), reason_code("max_iterations")
+
+
+def __getattr__(name):
+    if name == "PNP_REASONS":
+        deprecated_name("fsjax.fit.pnp.PNP_REASONS", "fsjax.types.RESULTS (reason_message)")
+        return _LEGACY.table()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 _COPLANAR = 1e-3
 
 
-class PnPResult(eqx.Module):
+class PnPResult(FitResult):
     """Result of :func:`solve_pnp` / :func:`solve_pnp_ransac`.
 
     Attributes:
-        R, t: ``camera_from_world`` pose (NaN when not ``valid``).
+        R, t: ``camera_from_world`` pose (NaN when no pose was determined).
         inliers: ``(N,)`` points used (all finite points for :func:`solve_pnp`).
         n_inliers: their count.
         rms_px: RMS reprojection error of the inliers (px).
-        iterations: LM steps. converged: optimistix reported success.
-        valid: a pose was determined. reason: int32 code into :data:`PNP_REASONS`.
+        iterations: LM steps. converged: a pose was determined and optimistix reported success.
+        reason: int32 code of :data:`fsjax.types.RESULTS`: ``ok``, ``max_iterations`` (a pose,
+            but the LM refinement did not converge), ``too_few``, ``coplanar``, ``too_few_inliers``.
+        valid: deprecated, a pose was determined (``reason`` is ``ok`` or ``max_iterations``).
     """
 
     R: Float[Array, "3 3"]
@@ -68,12 +75,16 @@ class PnPResult(eqx.Module):
     rms_px: Float[Array, ""]
     iterations: Int[Array, ""]
     converged: Bool[Array, ""]
-    valid: Bool[Array, ""]
     reason: Int[Array, ""]
+    residual_name = "rms_px"
 
     @property
-    def message(self) -> str:
-        return PNP_REASONS[int(self.reason)]
+    def valid(self):
+        """Deprecated: a pose was determined (``reason`` is ``ok`` or ``max_iterations``)."""
+        deprecated_name("PnPResult.valid", "PnPResult.reason (ok or max_iterations) / PnPResult.converged")
+        return (self.reason == _OK) | (self.reason == _MAX_ITER)
+
+    legacy_reason = _LEGACY.property()
 
     def camera(self, K, width: int, height: int, dist=None) -> Camera:
         """The ``world_from_camera`` :class:`Camera` of this pose."""
@@ -166,13 +177,15 @@ def _check(fn, X, uv):
 
 
 def _finish(R, t, X, uv, inl, K, dist, it, conv, reason):
+    """``reason``: the old PnP code (0 pose determined, 1 too few, 2 coplanar, 3 too few inliers)."""
     valid = reason == 0
+    reason = jnp.where(valid & ~conv, _MAX_ITER, _LEGACY.new(reason))
     p = _project_cw(R, t, X, K, dist)
     e2 = jnp.where(inl, jnp.sum((p - uv) ** 2, 1), 0.0)
     n_in = jnp.sum(inl)
     rms = jnp.sqrt(jnp.sum(e2) / jnp.maximum(n_in, 1))
     return PnPResult(R=jnp.where(valid, R, jnp.nan), t=jnp.where(valid, t, jnp.nan), inliers=inl, n_inliers=n_in,
-                     rms_px=jnp.where(valid, rms, jnp.nan), iterations=it, converged=conv & valid, valid=valid,
+                     rms_px=jnp.where(valid, rms, jnp.nan), iterations=it, converged=conv & valid,
                      reason=reason.astype(jnp.int32))
 
 
@@ -191,7 +204,7 @@ def solve_pnp(X, uv, K, dist=None, *, max_steps: int = 50) -> PnPResult:
         >>> X = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, (10, 3)) + [0, 0, 6])
         >>> uv = X[:, :2] / X[:, 2:] * 500 + 320
         >>> res = solve_pnp(X, uv, np.array([[500.0, 0, 320], [0, 500.0, 320], [0, 0, 1]]))
-        >>> bool(res.valid), float(res.rms_px) < 1e-9
+        >>> bool(res.converged), float(res.rms_px) < 1e-9
         (True, True)
         >>> flat = X.at[:, 2].set(6.0)
         >>> solve_pnp(flat, flat[:, :2] / 6.0 * 500 + 320, np.eye(3)).message

@@ -44,38 +44,41 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._linalg import SmallQR, eigh_small, solve_small, solve_spd_eig
+from ..types import NamedParams
+from ..types.results import FitResult, deprecated_name, reason_code, renamed
 
 __all__ = [
-    "Fit3D", "ModelSelection", "MODEL_PARAMS", "fit_plane", "fit_line", "fit_sphere", "fit_circle3d",
+    "Fit3D", "ModelSelection", "MODEL_PARAMS", "fit_plane", "fit_line3d", "fit_sphere", "fit_circle3d",
     "fit_cylinder", "fit_quadric", "select_model", "point_plane_distance", "point_line_distance",
     "line_line_distance", "angle_lines", "angle_planes", "angle_line_plane", "intersect_line_plane",
     "intersect_planes",
 ]
 
 
-class Fit3D(eqx.Module):
+class Fit3D(NamedParams, FitResult):
     """Result record of a 3-D primitive fit.
 
-    ``params`` (NaN when not ``converged``), ``residuals`` ``(N,)`` orthogonal
-    distances (NaN for invalid points), ``rss`` and ``rms`` over the valid
-    points, ``n_used``, ``iterations`` (solver steps; 0 for closed forms),
-    ``converged`` (False for degenerate input or a failed solve).
+    ``params`` (NaN when not ``converged``; ``fit["r"]`` reads one by name), ``residuals``
+    ``(N,)`` orthogonal distances (NaN for invalid points), ``rss`` and ``rms_len`` over the
+    valid points (input length unit; was ``rms``), ``n_used``, ``iterations`` (solver steps; 0
+    for closed forms), ``converged`` (False for degenerate input or a failed solve) and
+    ``reason`` (code of :data:`fsjax.types.RESULTS`: ``ok``, ``too_few``, ``degenerate`` or
+    ``max_iterations`` when the Levenberg-Marquardt refinement did not converge).
     """
 
     params: Float[Array, "*batch P"]
     residuals: Float[Array, "*batch N"]
     rss: Float[Array, "*batch"]
-    rms: Float[Array, "*batch"]
+    rms_len: Float[Array, "*batch"]
     n_used: Int[Array, "*batch"]
     iterations: Int[Array, "*batch"]
     converged: Bool[Array, "*batch"]
+    reason: Int[Array, "*batch"]
     kind: str = eqx.field(static=True, default="")
     names: tuple[str, ...] = eqx.field(static=True, default=())
+    residual_name = "rms_len"
 
-    def __getitem__(self, name: str) -> Array:
-        if name not in self.names:
-            raise KeyError(f"Fit3D: no parameter {name!r}; parameters: {', '.join(self.names)}")
-        return self.params[..., self.names.index(name)]
+    rms = renamed("rms_len")
 
 
 MODEL_PARAMS = {"plane": 3, "sphere": 4, "cylinder": 5, "quadric": 6}
@@ -122,15 +125,22 @@ def _pca(x, v):
     return c, jnp.maximum(ev, 0.0), evec
 
 
-def _finish(kind, names, params, res, v, ok, steps=0):
+_NEED = {"plane": 3, "line": 2, "sphere": 4, "circle3d": 3, "cylinder": 5, "quadric": 6}
+
+
+def _finish(kind, names, params, res, v, ok, steps=0, solved=True):
+    """The :class:`Fit3D` record; ``solved`` False = the iterative refinement did not converge."""
     r = jnp.where(v, res, jnp.nan)
     n = jnp.sum(v)
     rss = jnp.sum(jnp.where(v, res * res, 0.0))
     ok = ok & jnp.all(jnp.isfinite(params)) & jnp.isfinite(rss)
+    reason = jnp.where(ok, reason_code("ok"), jnp.where(
+        n < _NEED[kind], reason_code("too_few"),
+        jnp.where(solved, reason_code("degenerate"), reason_code("max_iterations"))))
     return Fit3D(params=jnp.where(ok, params, jnp.nan), residuals=jnp.where(ok, r, jnp.nan),
-                 rss=jnp.where(ok, rss, jnp.nan), rms=jnp.where(ok, jnp.sqrt(rss / jnp.maximum(n, 1)), jnp.nan),
+                 rss=jnp.where(ok, rss, jnp.nan), rms_len=jnp.where(ok, jnp.sqrt(rss / jnp.maximum(n, 1)), jnp.nan),
                  n_used=n.astype(jnp.int32), iterations=jnp.asarray(steps, jnp.int32), converged=ok,
-                 kind=kind, names=names)
+                 reason=reason.astype(jnp.int32), kind=kind, names=names)
 
 
 def _tols(dt):
@@ -173,16 +183,16 @@ def fit_plane(xyz, valid=None) -> Fit3D:
 
 
 @jax.jit
-def fit_line(xyz, valid=None) -> Fit3D:
+def fit_line3d(xyz, valid=None) -> Fit3D:
     """Total-least-squares 3-D line through the centroid along the largest principal axis.
 
     Residuals are orthogonal distances; fails closed for fewer than 2 distinct
-    valid points.
+    valid points. (Was ``fsjax.fit.fit_line``; the 2-D contour fit is :func:`fsjax.ops.fit_line`.)
 
     Example:
       >>> import jax.numpy as jnp
-      >>> from fsjax.fit import fit_line
-      >>> f = fit_line(jnp.array([[0.0, 0, 0], [1, 2, 2], [2, 4, 4]]))
+      >>> from fsjax.fit import fit_line3d
+      >>> f = fit_line3d(jnp.array([[0.0, 0, 0], [1, 2, 2], [2, 4, 4]]))
       >>> [round(float(v), 6) for v in f.params[3:]]
       [0.333333, 0.666667, 0.666667]
     """
@@ -242,7 +252,7 @@ def fit_sphere(xyz, valid=None, *, max_steps: int = 100) -> Fit3D:
     y, conv, steps = _lm(_sphere_res, y0, (x, v.astype(x.dtype)), max_steps)
     y = y.at[3].set(jnp.abs(y[3]))
     ok = ok & conv & (jnp.sum(v) >= 4)
-    return _finish("sphere", ("cx", "cy", "cz", "r"), y, _nrm(x - y[:3]) - y[3], v, ok, steps)
+    return _finish("sphere", ("cx", "cy", "cz", "r"), y, _nrm(x - y[:3]) - y[3], v, ok, steps, conv)
 
 
 def _circle2d_res(y, args):
@@ -289,7 +299,8 @@ def fit_circle3d(xyz, valid=None, *, max_steps: int = 100) -> Fit3D:
     rho = _nrm(u - y[:2])
     res = jnp.sqrt(h * h + (rho - jnp.abs(y[2])) ** 2)
     p = jnp.concatenate([cen, n, jnp.abs(y[2])[None]])
-    return _finish("circle3d", ("cx", "cy", "cz", "nx", "ny", "nz", "r"), p, res, v, ok & conv & (r2 > 0), steps)
+    return _finish("circle3d", ("cx", "cy", "cz", "nx", "ny", "nz", "r"), p, res, v, ok & conv & (r2 > 0), steps,
+                   conv)
 
 
 def _perp(a):
@@ -405,7 +416,7 @@ def fit_quadric(xyz, valid=None) -> Fit3D:
       >>> from fsjax.fit import fit_quadric
       >>> g = np.stack(np.meshgrid(np.linspace(-1, 1, 7), np.linspace(-1, 1, 5)), -1).reshape(-1, 2)
       >>> pts = np.c_[g, 0.1 * g[:, 0] ** 2 - 0.05 * g[:, 1] ** 2]
-      >>> round(float(fit_quadric(jnp.asarray(pts)).rms), 9)
+      >>> round(float(fit_quadric(jnp.asarray(pts)).rms_len), 9)
       0.0
     """
     x, v = _prep(xyz, valid)
@@ -439,13 +450,17 @@ def fit_quadric(xyz, valid=None) -> Fit3D:
 class ModelSelection(eqx.Module):
     """Evidence of :func:`select_model`: one entry per candidate in ``names`` order.
 
-    ``rss`` residual sum of squares, ``rms``, ``k`` free parameters, ``aic``,
+    Not a fit result (no ``converged``/``reason``): it compares the :class:`Fit3D` results of
+    the candidates; each candidate's failure shows as ``inf`` criteria, and ``choice == -1``
+    says none succeeded.
+
+    ``rss`` residual sum of squares, ``rms_len`` (input length unit; was ``rms``), ``k`` free parameters, ``aic``,
     ``bic`` (``inf`` for a fit that failed), ``choice`` index of the chosen model
     under ``criterion`` (``-1`` when no fit succeeded), ``n`` points used.
     """
 
     rss: Float[Array, "*batch M"]
-    rms: Float[Array, "*batch M"]
+    rms_len: Float[Array, "*batch M"]
     k: Int[Array, "*batch M"]
     aic: Float[Array, "*batch M"]
     bic: Float[Array, "*batch M"]
@@ -453,6 +468,8 @@ class ModelSelection(eqx.Module):
     n: Int[Array, "*batch"]
     names: tuple[str, ...] = eqx.field(static=True, default=())
     criterion: str = eqx.field(static=True, default="bic")
+
+    rms = renamed("rms_len")
 
     def chosen(self) -> str:
         """Name of the chosen model (eager, single result); ``"none"`` when every fit failed."""
@@ -480,7 +497,7 @@ def select_model(xyz, valid=None, *, criterion: str = "bic") -> ModelSelection:
     fits = (fit_plane(xyz, valid), fit_sphere(xyz, valid), fit_cylinder(xyz, valid), fit_quadric(xyz, valid))
     names = ("plane", "sphere", "cylinder", "quadric")
     rss = jnp.stack([f.rss for f in fits])
-    rms = jnp.stack([f.rms for f in fits])
+    rms = jnp.stack([f.rms_len for f in fits])
     ok = jnp.stack([f.converged for f in fits]) & (rss > 0)
     n = fits[0].n_used
     nf = n.astype(rss.dtype)
@@ -490,7 +507,7 @@ def select_model(xyz, valid=None, *, criterion: str = "bic") -> ModelSelection:
     bic = jnp.where(ok, ll + k * jnp.log(jnp.maximum(nf, 1.0)), jnp.inf)
     crit = aic if criterion == "aic" else bic
     choice = jnp.where(jnp.any(ok), jnp.argmin(crit), -1).astype(jnp.int32)
-    return ModelSelection(rss=rss, rms=rms, k=k, aic=aic, bic=bic, choice=choice, n=n, names=names,
+    return ModelSelection(rss=rss, rms_len=rms, k=k, aic=aic, bic=bic, choice=choice, n=n, names=names,
                           criterion=criterion)
 
 
@@ -636,3 +653,10 @@ def intersect_planes(p1, p2, *, min_angle_deg: float = 1e-6):
     M = jnp.stack([n1, n2, u])
     x = solve_small(jnp.where(ok, M, jnp.eye(3, dtype=M.dtype)), jnp.stack([d1, d2, jnp.zeros_like(d1)]))
     return jnp.where(ok, jnp.concatenate([x, u]), jnp.nan), ok
+
+
+def __getattr__(name):
+    if name == "fit_line":
+        deprecated_name("fsjax.fit.fit_line (3-D)", "fsjax.fit.fit_line3d")
+        return fit_line3d
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -34,8 +34,9 @@ cylinder's inliers all lie within ``threshold`` of one plane (the data do not
 resolve any curvature: a huge radius would fit a flat patch), when the consensus
 is below ``min_inlier_fraction`` of the valid points (the usual symptom of
 too many outliers for the hypothesis count), or when the nonlinear refit did
-not converge. ``reason`` gives the code (``REASONS[reason]``,
-``result.reason_text()`` eagerly). ``raw_params`` keeps the refitted
+not converge. ``reason`` gives the code of :data:`fsjax.types.RESULTS` (``too_few``,
+``invalid_input``, ``degenerate``, ``unsupported_model``, ``poor_fit``, ``max_iterations``;
+``result.message`` eagerly). ``raw_params`` keeps the refitted
 parameters before this gate, for diagnostics only.
 
 Hypothesis count: with inlier ratio ``w`` and sample size ``s``, ``H``
@@ -52,25 +53,30 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optimistix as optx
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ..types import Points, is_concrete
+from .._checks import check_choice, check_positive, check_range, check_static_int
+from ..ops import estimate_normals
+from ..types import NamedParams, Points
+from ..types.results import FitResult, Legacy, deprecated_name, renamed
+from ._cloud import as_cloud
 
-__all__ = ["RansacResult", "REASONS", "MODELS", "ransac", "ransac_plane", "ransac_sphere", "ransac_line",
+__all__ = ["RansacResult", "MODELS", "ransac", "ransac_plane", "ransac_sphere", "ransac_line",
            "ransac_cylinder"]
 
-REASONS = (
-    "ok",
-    "too few valid points for a minimal sample",
-    "non-finite coordinates among the valid points",
-    "degenerate: no non-degenerate sample, or degenerate inlier set",
-    "consensus below min_inlier_fraction",
-    "least-squares refit did not converge",
-    "unsupported model: the inliers also lie within threshold of a plane (no curvature resolved)",
-)
+#: the old RANSAC codes 0..6 (deprecated ``legacy_reason`` and ``REASONS``)
+_LEGACY = Legacy(("ok", "too_few", "invalid_input", "degenerate", "poor_fit", "max_iterations",
+                  "unsupported_model"))
+
+
+def __getattr__(name):
+    if name == "REASONS":
+        deprecated_name("fsjax.fit.ransac3d.REASONS", "fsjax.types.RESULTS (reason_message)")
+        return _LEGACY.table()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 MODELS = {
     "plane": (("nx", "ny", "nz", "d"), 3),
@@ -80,14 +86,14 @@ MODELS = {
 }
 
 
-class RansacResult(eqx.Module):
+class RansacResult(NamedParams, FitResult):
     """Result record of a 3-D RANSAC fit.
 
     ``params`` (NaN unless ``converged``), ``inliers`` ``(N,)`` mask (all
     False unless ``converged``), ``n_inliers`` and ``inlier_fraction`` (of the
-    valid points; the consensus of the final model even when rejected), ``rms`` of the
-    orthogonal residuals over the inliers, ``converged``, ``reason`` (index into
-    :data:`REASONS`), ``hypothesis_inliers`` (consensus of the best hypothesis
+    valid points; the consensus of the final model even when rejected), ``rms_len`` of the
+    orthogonal residuals over the inliers (input length unit; was ``rms``), ``converged``,
+    ``reason`` (code of :data:`fsjax.types.RESULTS`), ``hypothesis_inliers`` (consensus of the best hypothesis
     before the refit), ``iterations`` (solver steps of the last refit),
     ``raw_params`` (before the acceptance gate; diagnostics only).
     """
@@ -97,22 +103,22 @@ class RansacResult(eqx.Module):
     inliers: Bool[Array, "*batch N"]
     n_inliers: Int[Array, "*batch"]
     inlier_fraction: Float[Array, "*batch"]
-    rms: Float[Array, "*batch"]
+    rms_len: Float[Array, "*batch"]
     converged: Bool[Array, "*batch"]
     reason: Int[Array, "*batch"]
     hypothesis_inliers: Int[Array, "*batch"]
     iterations: Int[Array, "*batch"]
     kind: str = eqx.field(static=True, default="")
     names: tuple[str, ...] = eqx.field(static=True, default=())
+    residual_name = "rms_len"
 
-    def __getitem__(self, name: str) -> Array:
-        if name not in self.names:
-            raise KeyError(f"RansacResult: no parameter {name!r}; parameters: {', '.join(self.names)}")
-        return self.params[..., self.names.index(name)]
+    rms = renamed("rms_len")
+    legacy_reason = _LEGACY.property()
 
     def reason_text(self) -> str:
-        """The reason as text (eager, single result)."""
-        return REASONS[int(self.reason)]
+        """Deprecated: the reason as text; use ``message``."""
+        deprecated_name("RansacResult.reason_text()", "RansacResult.message")
+        return self.message
 
 
 # ---------------------------------------------------------------------------
@@ -304,20 +310,6 @@ _IMPL = {
 # ---------------------------------------------------------------------------
 
 
-def _as_cloud(fn: str, points, valid, normals):
-    if isinstance(points, Points):
-        if valid is not None:
-            raise TypeError(f"{fn}: pass 'valid' only with a plain array; a Points carries its own mask")
-        return points.xyz, points.valid, points.normals if normals is None else normals
-    xyz = jnp.asarray(points)
-    if xyz.ndim != 2 or xyz.shape[-1] != 3:
-        raise ValueError(f"{fn}: argument 'points' must have shape (N, 3), got {tuple(xyz.shape)}")
-    if not jnp.issubdtype(xyz.dtype, jnp.floating):
-        xyz = xyz.astype(jnp.result_type(float))
-    v = jnp.ones(xyz.shape[0], bool) if valid is None else jnp.asarray(valid, bool)
-    return xyz, v, normals
-
-
 @functools.partial(jax.jit, static_argnames=("model", "n_hyp", "max_steps", "rounds"))
 def _core(key, xyz, valid, normals, thr, min_frac, *, model, n_hyp, max_steps, rounds):
     hyp, dist, refit = _IMPL[model]
@@ -382,22 +374,20 @@ def _core(key, xyz, valid, normals, thr, min_frac, *, model, n_hyp, max_steps, r
     if model in ("plane", "line"):
         reason = jnp.where((reason == 5), 3, reason)
     conv = reason == 0
+    reason = _LEGACY.new(reason).astype(jnp.int32)
     return RansacResult(
         params=jnp.where(conv, q, jnp.nan), raw_params=q, inliers=inl & conv,
-        n_inliers=n_in.astype(jnp.int32), inlier_fraction=frac, rms=jnp.where(n_in > 0, rms, jnp.nan),
+        n_inliers=n_in.astype(jnp.int32), inlier_fraction=frac, rms_len=jnp.where(n_in > 0, rms, jnp.nan),
         converged=conv, reason=reason, hypothesis_inliers=jnp.maximum(cnt[best], 0).astype(jnp.int32),
         iterations=steps, kind=model, names=names)
 
 
 @jax.jit
 def _pca_normals(xyz, v):
-    from ..ops.points._cloud import knn, pca_frames
-
+    """PCA normals of 12 neighbours (:func:`fsjax.ops.estimate_normals`; the sign is irrelevant here)."""
     vv = v & jnp.all(jnp.isfinite(xyz), axis=-1)
     x0 = jnp.where(vv[:, None], xyz, 0.0)
-    idx, _ = knn(x0, x0, 12, ref_valid=vv)
-    _, evecs, _, _ = pca_frames(x0, vv, idx)
-    return evecs[..., 0]
+    return estimate_normals(Points(x0, valid=vv), k=12).normals
 
 
 def ransac(key, points, model: str = "plane", *, threshold: float = 0.01, n_hypotheses: int = 256,
@@ -438,15 +428,11 @@ def ransac(key, points, model: str = "plane", *, threshold: float = 0.01, n_hypo
       (True, 1.0, 0.3)
     """
     fn = "ransac"
-    if model not in MODELS:
-        raise ValueError(f"{fn}: argument 'model' must be one of {', '.join(map(repr, MODELS))}; got {model!r}")
-    if not isinstance(n_hypotheses, (int, np.integer)) or isinstance(n_hypotheses, bool) or n_hypotheses < 1:
-        raise ValueError(f"{fn}: argument 'n_hypotheses' must be a static int >= 1, got {n_hypotheses!r}")
-    if is_concrete(threshold) and not (np.isfinite(float(threshold)) and float(threshold) > 0):
-        raise ValueError(f"{fn}: argument 'threshold' must be a finite number > 0, got {threshold!r}")
-    if is_concrete(min_inlier_fraction) and not 0 <= float(min_inlier_fraction) <= 1:
-        raise ValueError(f"{fn}: argument 'min_inlier_fraction' must be in [0, 1], got {min_inlier_fraction!r}")
-    xyz, v, nrm = _as_cloud(fn, points, valid, normals)
+    check_choice(fn, "model", model, tuple(MODELS))
+    n_hypotheses = check_static_int(fn, "n_hypotheses", n_hypotheses, lo=1)
+    check_positive(fn, "threshold", threshold)
+    check_range(fn, "min_inlier_fraction", min_inlier_fraction, 0.0, 1.0)
+    xyz, v, nrm = as_cloud(fn, "points", points, valid, normals)
     if model == "cylinder" and nrm is None:
         nrm = _pca_normals(xyz, v)
     dt = xyz.dtype

@@ -20,12 +20,18 @@ Conventions (stated once for the registration modules ``rigid``, ``icp``, ``glob
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ..types.results import FitResult, deprecated_name, legacy_table, reason_code, reason_message, renamed
+from ..types.results import (
+    FitResult,
+    deprecated_name,
+    legacy_table,
+    reason_code,
+    reason_message,
+    renamed,
+)
 
 __all__ = [
     "reason_message",

@@ -44,11 +44,13 @@ import numpy as np
 import optax
 import optimistix as optx
 
+from ..ops import psnr as _psnr_op
 from ..render.camera import intrinsics_from_fov, look_at
 from ..render.splat import _bucket, count_splat_pairs, render_splats, rgb_to_sh0
-from ..types import Camera, Gaussians, Mesh
+from ..types import Camera, Gaussians, Image, Mesh
+from ..types.results import FitResult, deprecated_name, reason_code
 
-__all__ = ["MultiViewData", "mesh_views", "ssim_color", "psnr", "coverage_holes", "init_from_mesh",
+__all__ = ["MultiViewData", "mesh_views", "ssim_color", "coverage_holes", "init_from_mesh",
            "SplatTrainResult", "train_splats", "evaluate_splats"]
 
 
@@ -174,10 +176,22 @@ def ssim_color(a, b, *, data_range: float = 1.0):
     return jnp.mean(s)
 
 
-def psnr(a, b, *, data_range: float = 1.0):
-    """Peak signal-to-noise ratio in dB, ``10 log10(range^2 / MSE)`` (inf for identical images)."""
-    mse = jnp.mean((jnp.asarray(a) - jnp.asarray(b)) ** 2)
-    return 10.0 * jnp.log10(data_range**2 / mse)
+def _psnr(a, b, *, data_range: float = 1.0):
+    """:func:`fsjax.ops.psnr` of two same-shape arrays of any rank (colour images included).
+
+    The op's mean squared error runs over every pixel; an ``(H, W, 3)`` image is passed as the
+    ``(H, 3 W)`` grey image of the same values, which has the same mean.
+    """
+    a, b = jnp.asarray(a), jnp.asarray(b)
+    flat = (a.shape[0], -1) if a.ndim >= 2 else (1, -1)
+    return _psnr_op(Image(a.reshape(flat)), Image(b.reshape(flat)), data_range=data_range).value
+
+
+def __getattr__(name):
+    if name == "psnr":
+        deprecated_name("fsjax.fit.splat_train.psnr", "fsjax.ops.psnr")
+        return _psnr
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def coverage_holes(alpha, mask, *, alpha_threshold: float = 0.5) -> dict:
@@ -222,13 +236,18 @@ def init_from_mesh(key, data: MultiViewData, n_init: int, max_splats: int, *, dt
                      jnp.asarray(cols, dtype), valid=jnp.asarray(valid))
 
 
-class SplatTrainResult(eqx.Module):
+class SplatTrainResult(FitResult):
     """Trained ``gaussians``; per-step ``loss``; ``n_splats`` after each densification;
     ``overflow`` per step (splat-tile pairs dropped); ``step_seconds`` median wall time of a
     step (steps that compiled excluded); ``compile_seconds`` (first step plus every step that
     grew the pair buffer); ``converged`` (the optimiser's Cauchy test never fires in a
     fixed-length run, so this reports whether the final loss is finite); ``pairs`` the
-    rasteriser's (splat, tile) pair demand per step; ``max_pairs`` the final buffer size."""
+    rasteriser's (splat, tile) pair demand per step; ``max_pairs`` the final buffer size.
+
+    Base fields: ``reason`` is ``ok`` or ``invalid_input`` (a non-finite final loss),
+    ``iterations`` the optimiser steps run (``len(loss)``). No residual with a unit: the
+    objective is the unitless photometric loss (L1 and D-SSIM mix), reported per step in
+    ``loss``; image quality is measured by :func:`evaluate_splats` (PSNR, SSIM)."""
 
     gaussians: Gaussians
     loss: np.ndarray
@@ -239,6 +258,14 @@ class SplatTrainResult(eqx.Module):
     converged: bool
     pairs: np.ndarray = None
     max_pairs: int = 0
+
+    @property
+    def reason(self):
+        return np.int32(reason_code("ok") if self.converged else reason_code("invalid_input"))
+
+    @property
+    def iterations(self):
+        return np.int32(len(self.loss))
 
 
 _FIELDS = ("means", "log_scales", "quats", "opacity_logits", "colors")
@@ -501,7 +528,7 @@ def evaluate_splats(g: Gaussians, data: MultiViewData, views=None, *, tile_size:
                                      else a, cam)
         out = render_splats(g, cam, tile_size=tile_size, capacity=capacity)
         img = data.images[vi].astype(out.color.dtype)
-        ps.append(float(psnr(jnp.clip(out.color, 0, 1), img)))
+        ps.append(float(_psnr(jnp.clip(out.color, 0, 1), img)))
         ss.append(float(ssim_color(jnp.clip(out.color, 0, 1), img)))
         holes.append(coverage_holes(out.alpha, data.masks[vi], alpha_threshold=alpha_threshold))
         m = np.asarray(data.masks[vi])

@@ -11,8 +11,8 @@ Conventions:
   is unobservable from two views); triangulated points are in camera-1 coordinates in
   units of the baseline.
 * Everything is jit-compiled JAX; RANSAC hypotheses are drawn with a ``key`` and fitted and
-  scored in one ``vmap``. Failures are reported in the record (``valid``, ``reason``
-  code, :data:`TWOVIEW_REASONS`) with NaN pose fields, never a plausible pose.
+  scored in one ``vmap``. Failures are reported in the record (``converged``, a ``reason``
+  code of :data:`fsjax.types.RESULTS`) with NaN pose fields, never a plausible pose.
 
 Degeneracy: a camera that only rotates has no parallax; ``E`` is then undefined and any
 ``t`` "fits". :func:`relative_pose` therefore tests parallax directly: it aligns the two
@@ -37,10 +37,10 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ..render.camera import undistort_normalized
+from ..types.results import FitResult, Legacy, deprecated_name, reason_code
 from .calibrate import rodrigues
 
 __all__ = [
-    "TWOVIEW_REASONS",
     "TwoViewResult",
     "fundamental_8point",
     "essential_8point",
@@ -52,13 +52,15 @@ __all__ = [
     "relative_pose",
 ]
 
-TWOVIEW_REASONS = (
-    "ok",
-    "too few correspondences (need 8)",
-    "too few RANSAC inliers (need 8)",
-    "pure rotation: no parallax (t undefined; R from bearing alignment)",
-    "no pose puts the inliers in front of both cameras",
-)
+#: the old two-view codes 0..4 (deprecated ``legacy_reason`` and ``TWOVIEW_REASONS``)
+_LEGACY = Legacy(("ok", "too_few", "too_few_inliers", "pure_rotation", "cheirality"))
+
+
+def __getattr__(name):
+    if name == "TWOVIEW_REASONS":
+        deprecated_name("fsjax.fit.twoview.TWOVIEW_REASONS", "fsjax.types.RESULTS (reason_message)")
+        return _LEGACY.table()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _hartley(p, w):
@@ -193,13 +195,13 @@ def rotation_parallax(x1, x2, weights=None):
     return R, jnp.arctan2(s, c)
 
 
-class TwoViewResult(eqx.Module):
+class TwoViewResult(FitResult):
     """Result of :func:`relative_pose`.
 
     Attributes:
         R: ``(3, 3)`` ``camera2_from_camera1`` rotation (from the bearing alignment when
-          ``degenerate``; NaN when not ``valid``).
-        t: ``(3,)`` unit translation (NaN when degenerate or not valid).
+          ``degenerate``; NaN when neither ``converged`` nor a pure rotation).
+        t: ``(3,)`` unit translation (NaN unless ``converged``).
         E: ``(3, 3)`` essential matrix of the inliers. F: ``(3, 3)`` fundamental matrix.
         inliers: ``(N,)`` RANSAC inliers (Sampson distance below the threshold).
         n_inliers: their count.
@@ -209,7 +211,12 @@ class TwoViewResult(eqx.Module):
           rotation aligning the inlier bearings: ~noise for a rotation-only pair.
         sampson_rms_px: RMS Sampson distance of the inliers (px).
         degenerate: no parallax (pure rotation).
-        valid: ``R`` is meaningful. reason: int32 code into :data:`TWOVIEW_REASONS`.
+        converged: the full pose ``R``, ``t`` is determined (``reason`` is ``ok``).
+        reason: int32 code of :data:`fsjax.types.RESULTS`: ``ok``, ``too_few`` (fewer than 8
+          correspondences), ``too_few_inliers``, ``pure_rotation`` (``R`` meaningful, ``t`` not),
+          ``cheirality``.
+        iterations: RANSAC hypotheses drawn (``n_hypotheses``).
+        valid: deprecated, ``R`` is meaningful (``reason`` is ``ok`` or ``pure_rotation``).
     """
 
     R: Float[Array, "3 3"]
@@ -222,12 +229,18 @@ class TwoViewResult(eqx.Module):
     parallax_px: Float[Array, ""]
     sampson_rms_px: Float[Array, ""]
     degenerate: Bool[Array, ""]
-    valid: Bool[Array, ""]
+    converged: Bool[Array, ""]
     reason: Int[Array, ""]
+    iterations: Int[Array, ""]
+    residual_name = "sampson_rms_px"
 
     @property
-    def message(self) -> str:
-        return TWOVIEW_REASONS[int(self.reason)]
+    def valid(self):
+        """Deprecated: ``R`` is meaningful (``reason`` is ``ok`` or ``pure_rotation``)."""
+        deprecated_name("TwoViewResult.valid", "TwoViewResult.reason (ok or pure_rotation) / .converged")
+        return (self.reason == reason_code("ok")) | (self.reason == reason_code("pure_rotation"))
+
+    legacy_reason = _LEGACY.property()
 
 
 def _skew(v):
@@ -290,7 +303,7 @@ def relative_pose(key, uv1, uv2, K1, K2=None, *, dist1=None, dist2=None, thresho
         >>> K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
         >>> pr = lambda P: (P[:, :2] / P[:, 2:]) * 500 + [320, 240]
         >>> res = relative_pose(jax.random.PRNGKey(0), pr(X), pr(X @ R.T + t), K)
-        >>> bool(res.valid), bool(res.degenerate), float(np.abs(np.asarray(res.t) - t).max()) < 1e-6
+        >>> bool(res.converged), bool(res.degenerate), float(np.abs(np.asarray(res.t) - t).max()) < 1e-6
         (True, False, True)
     """
     uv1 = jnp.asarray(uv1)
@@ -300,7 +313,7 @@ def relative_pose(key, uv1, uv2, K1, K2=None, *, dist1=None, dist2=None, thresho
     if uv2.shape != uv1.shape:
         raise ValueError(f"relative_pose(uv2): expected {uv1.shape}, got {uv2.shape}")
     if int(n_hypotheses) < 1:
-        raise ValueError(f"relative_pose(n_hypotheses=...): must be >= 1, got {n_hypotheses}")
+        raise ValueError(f"relative_pose: argument 'n_hypotheses' must be >= 1, got {n_hypotheses}")
     K1 = jnp.asarray(K1, uv1.dtype)
     K2 = K1 if K2 is None else jnp.asarray(K2, uv1.dtype)
     return _relative_pose(key, uv1, uv2, K1, K2, dist1, dist2, jnp.asarray(threshold_px, uv1.dtype),
@@ -389,4 +402,5 @@ def _relative_pose(key, uv1, uv2, K1, K2, dist1, dist2, thr, n_hyp, min_par):
     t = jnp.where((reason == 0), ts[b], jnp.nan)
     pts = jnp.where((oks[b] & (reason == 0))[:, None], Xs[b], jnp.nan)
     return TwoViewResult(R=R, t=t, E=E, F=F, inliers=inl, n_inliers=n_in, points=pts, parallax_px=par,
-                         sampson_rms_px=srms, degenerate=degenerate, valid=valid, reason=reason.astype(jnp.int32))
+                         sampson_rms_px=srms, degenerate=degenerate, converged=reason == 0,
+                         reason=_LEGACY.new(reason).astype(jnp.int32), iterations=jnp.asarray(n_hyp, jnp.int32))

@@ -47,7 +47,7 @@ def measure_real_chessboard() -> dict:
 
     ims = chessboard_images(as_float=False)
     res = [find_chessboard(g, (9, 6)) for g in ims]
-    found = np.array([bool(r.found) for r in res])
+    found = np.array([bool(r.converged) for r in res])
     ours = np.stack([np.asarray(r.corners) for r in res])
     board = board_points((9, 6))
     # null: integer-pixel corners (the response peaks the refinement started from)
@@ -88,7 +88,7 @@ def measure_real_chessboard() -> dict:
 
 def _cal_row(cal) -> str:
     p = cal.params
-    return (f"RMS {float(cal.rms):.4f} px, fx {p['fx']:.2f}, fy {p['fy']:.2f}, cx {p['cx']:.2f}, "
+    return (f"RMS {float(cal.rms_px):.4f} px, fx {p['fx']:.2f}, fy {p['fy']:.2f}, cx {p['cx']:.2f}, "
             f"cy {p['cy']:.2f}")
 
 
@@ -122,8 +122,8 @@ def real_chessboard(out: Path, quick: bool) -> Section:
     return Section(
         title="Camera calibration on 14 real chessboard photographs",
         truth="OpenCV's calibration of the same images (no ground truth exists for a real lens)",
-        rows=rows, fsjax_figure=f"RMS {float(cal.rms):.4f} px" + (f" (OpenCV {cv['rms']:.4f})" if cv is not None else ""),
-        null_figure=f"RMS {float(null.rms):.4f} px", beats_null=bool(cal.rms < null.rms), figure=fig,
+        rows=rows, fsjax_figure=f"RMS {float(cal.rms_px):.4f} px" + (f" (OpenCV {cv['rms']:.4f})" if cv is not None else ""),
+        null_figure=f"RMS {float(null.rms_px):.4f} px", beats_null=bool(cal.rms_px < null.rms_px), figure=fig,
         notes="Zhang closed form, then optimistix LM over 9 intrinsics and 84 pose parameters.")
 
 

@@ -195,7 +195,7 @@ def measure_model_selection(trials: int = 67, n: int = 150, noise: float = 0.01)
     for i, kind in enumerate(MODEL_KINDS):
         x = jnp.asarray(np.stack([surface_patch(kind, 1000 * i + t, n, noise) for t in range(trials)]))
         r = f(x)
-        rms, bic, aic = np.asarray(r.rms), np.asarray(r.bic), np.asarray(r.aic)
+        rms, bic, aic = np.asarray(r.rms_len), np.asarray(r.bic), np.asarray(r.aic)
 
         def med(a):
             return [float(np.median(c[np.isfinite(c)])) if np.isfinite(c).any() else float("nan") for c in a.T]

@@ -49,7 +49,7 @@ def measure_self_registration(n_points: int = 1000, noise: float = 1e-4, angle_d
         res = icp(jnp.asarray(src), jnp.asarray(x), method=m, max_iterations=100)
         out[m] = {"error_deg": float(rotation_error_deg(res.R, jnp.asarray(r))),
                   "t_error": float(np.linalg.norm(np.asarray(res.t) - _SHIFT)),
-                  "iterations": int(res.iterations), "converged": bool(res.converged), "rmse": float(res.rmse),
+                  "iterations": int(res.iterations), "converged": bool(res.converged), "rmse": float(res.rms_len),
                   "reason": int(res.reason)}
     return out
 

@@ -34,7 +34,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["RESULTS", "FitResult", "reason_code", "reason_message", "result_item", "renamed", "deprecated_name"]
+__all__ = ["RESULTS", "FitResult", "WrappedFit", "reason_code", "reason_message", "result_item", "renamed", "deprecated_name"]
 
 
 class RESULTS(eqx.Enumeration):
@@ -138,14 +138,76 @@ class FitResult(eqx.Module):
         return None if self.residual_name is None else getattr(self, self.residual_name)
 
 
-def _legacy(code: Any, table: dict[int, int]) -> Any:
-    """Map new reason codes to a fit's old codes (jit-safe table lookup)."""
-    lut = np.full(len(RESULTS), -1, np.int32)
-    for new, old in table.items():
-        lut[new] = old
-    return jnp.asarray(lut)[jnp.asarray(code, jnp.int32)]
+class WrappedFit(FitResult):
+    """A result that wraps another fit result: its base fields are those of the field ``inner``."""
+
+    inner: ClassVar[str] = ""
+
+    @property
+    def converged(self) -> Any:
+        return getattr(self, self.inner).converged
+
+    @property
+    def reason(self) -> Any:
+        return getattr(self, self.inner).reason
+
+    @property
+    def iterations(self) -> Any:
+        return getattr(self, self.inner).iterations
+
+    @property
+    def residual(self) -> Any:
+        return getattr(getattr(self, self.inner), self.residual_name)
 
 
-def legacy_table(messages: dict[str, Any]) -> dict[int, str]:
+class Legacy:
+    """The old per-fit reason codes of one fit (deprecated; kept one release for ``legacy_reason``).
+
+    ``names[i]`` is the :class:`RESULTS` member that old code ``i`` became; ``also`` maps further
+    members to an old code (e.g. ``max_iterations`` of PnP, once reported as 0 with
+    ``converged=False``).
+    """
+
+    def __init__(self, names: tuple[str, ...], also: dict[str, int] | None = None):
+        self.names = tuple(names)
+        self._new = np.asarray([reason_code(n) for n in self.names], np.int32)
+        old = np.full(len(RESULTS), -1, np.int32)
+        for i, n in enumerate(self.names):
+            old[reason_code(n)] = i
+        for n, i in (also or {}).items():
+            old[reason_code(n)] = i
+        self._old = old
+
+    def new(self, old_code: Any) -> Any:
+        """New code of an old code (jit-safe)."""
+        return jnp.asarray(self._new)[jnp.asarray(old_code, jnp.int32)]
+
+    def old(self, new_code: Any) -> Any:
+        """Old code of a new code (jit-safe; -1 where the old table had none)."""
+        return jnp.asarray(self._old)[jnp.asarray(new_code, jnp.int32)]
+
+    def table(self) -> dict[int, str]:
+        """``{new code: message}`` of the members this fit can return (the deprecated ``*_REASONS``)."""
+        return legacy_table(self.names)
+
+    def property(self) -> property:
+        """A deprecated ``legacy_reason`` property: the old code of the record's ``reason``."""
+        legacy = self
+
+        class _Prop(property):
+            def __set_name__(self, owner, name):
+                self._owner = owner.__name__
+
+        def get(rec):
+            deprecated_name(f"{prop._owner}.legacy_reason (the old per-fit reason codes)",
+                            f"{prop._owner}.reason (codes of fsjax.types.RESULTS)")
+            return legacy.old(rec.reason)
+
+        prop = _Prop(get, doc="Deprecated: the reason in this fit's old codes.")
+        prop._owner = "record"
+        return prop
+
+
+def legacy_table(messages: tuple[str, ...]) -> dict[int, str]:
     """``{new code: message}`` restricted to the members a fit can return (deprecated tables)."""
     return {reason_code(n): RESULTS._index_to_message[reason_code(n)] for n in messages}

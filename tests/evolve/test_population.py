@@ -33,7 +33,7 @@ def test_stage_vocabulary_is_derived_from_the_registry():
     for name in G.DEFAULT_VOCABULARY:
         s = fsjax.get_op(name)
         assert s.linear and s.takes[0] in G.STATE_SORTS and s.gives in G.STATE_SORTS
-    sk = G.skeleton([Image, Image, Region, Region, Feature])
+    sk = G.type_skeleton([Image, Image, Region, Region, Feature])
     for s, voc in enumerate(sk.vocabs):
         for name in voc:
             if name != G.IDENTITY:
@@ -43,32 +43,32 @@ def test_stage_vocabulary_is_derived_from_the_registry():
 
 def test_empty_vocabulary_and_bad_skeletons_raise():
     with pytest.raises(ValueError, match=r"stage 2 \(Image -> Region\).*empty vocabulary"):
-        G.skeleton([Image, Image, Region], vocabulary=["gaussian"])
+        G.type_skeleton([Image, Image, Region], vocabulary=["gaussian"])
     with pytest.raises(ValueError, match="at least 2 sorts"):
-        G.skeleton([Image])
+        G.type_skeleton([Image])
     with pytest.raises(ValueError, match="cannot be a stage state"):
-        G.skeleton([Image, fsjax.Labels])
+        G.type_skeleton([Image, fsjax.Labels])
     with pytest.raises(KeyError, match="unknown op"):
-        G.skeleton([Image, Image], vocabulary=["gausian"])
+        G.type_skeleton([Image, Image], vocabulary=["gausian"])
     sks = G.enumerate_skeletons(Image, Region, 3, V)
     assert {sk.describe() for sk in sks} == {"Image -> Image -> Image -> Region", "Image -> Image -> Region -> Region",
                                              "Image -> Region -> Region -> Region"}
 
 
 def test_champion_stored_by_name_survives_a_vocabulary_change():
-    sk = G.skeleton([Image, Image, Image, Region], V)
+    sk = G.type_skeleton([Image, Image, Image, Region], V)
     rng = np.random.default_rng(3)
     ops, knobs = G.random_population(rng, sk, 5)
     for o, k in zip(ops, knobs):
         rec = G.champion_record(sk, o, k)
         # a bigger vocabulary shifts indices; the record decodes to the same ops and parameters
-        sk2 = G.skeleton([Image, Image, Image, Region], V + ["bilateral", "erosion", "canny"])
+        sk2 = G.type_skeleton([Image, Image, Image, Region], V + ["bilateral", "erosion", "canny"])
         o2, k2 = G.encode(sk2, rec)
         assert [s["op"] for s in G.decode(sk2, o2, k2)] == [s["op"] for s in rec["stages"]]
         assert G.decode(sk2, o2, k2) == rec["stages"]
     rec = {"skeleton": ["Image", "Image"], "stages": [{"op": "gaussian", "a": 0.2, "b": None}]}
     with pytest.raises(ValueError, match="stage 1: op 'gaussian' is not in"):
-        G.encode(G.skeleton([Image, Image], ["box_filter"]), rec)
+        G.encode(G.type_skeleton([Image, Image], ["box_filter"]), rec)
 
 
 @pytest.fixture(scope="module")

@@ -19,27 +19,27 @@ def test_real_chessboard_vs_opencv():
     ref = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
     p = cal.params
     rel = {k: abs(p[k] - ref[k]) / ref[k] for k in ref}
-    print(f"real chessboard, fsjax corners + fsjax LM: RMS {float(cal.rms):.4f} px vs cv2.calibrateCamera "
-          f"(cv2 corners) {cv['rms']:.4f} px ({100 * (float(cal.rms) / cv['rms'] - 1):+.1f} %); " + ", ".join(
+    print(f"real chessboard, fsjax corners + fsjax LM: RMS {float(cal.rms_px):.4f} px vs cv2.calibrateCamera "
+          f"(cv2 corners) {cv['rms']:.4f} px ({100 * (float(cal.rms_px) / cv['rms'] - 1):+.1f} %); " + ", ".join(
               f"{k} {p[k]:.2f} vs {ref[k]:.2f} ({100 * rel[k]:.3f} %)" for k in ref))
     print("  std (J^T J)^-1 sigma^2: " + ", ".join(f"{n} {s:.3g}" for n, s in zip(p, np.asarray(cal.std)))
           + f"; converged {bool(cal.converged)} in {int(cal.iterations)} LM steps; Zhang init fx "
             f"{float(cal.init_K[0, 0]):.1f}")
-    print(f"  per-view RMS {np.round(np.asarray(cal.per_view_rms), 3).tolist()}")
+    print(f"  per-view RMS {np.round(np.asarray(cal.per_view_rms_px), 3).tolist()}")
     assert bool(cal.converged)
-    assert float(cal.rms) <= 1.05 * cv["rms"]  # within 5 % of OpenCV's or better
+    assert float(cal.rms_px) <= 1.05 * cv["rms"]  # within 5 % of OpenCV's or better
     assert max(rel.values()) < 0.01
     # the same corners in both solvers: the fit itself matches OpenCV's to rounding
     po = on_cv.params
-    d_rms = abs(float(on_cv.rms) - cv["rms"]) / cv["rms"]
+    d_rms = abs(float(on_cv.rms_px) - cv["rms"]) / cv["rms"]
     d_k = max(abs(po[k] - ref[k]) / ref[k] for k in ref)
     d_dist = np.abs(np.asarray(on_cv.dist) - cv["dist"]).max()
     print(f"  fsjax LM on cv2's corners: RMS rel diff {d_rms:.1e}, fx/fy/cx/cy max rel diff {d_k:.1e}, "
           f"distortion max |diff| {d_dist:.1e}")
     assert d_rms < 1e-4 and d_k < 1e-4 and d_dist < 1e-3
     # the null: integer-pixel corners
-    print(f"  null (integer-pixel corners): RMS {float(r['cal_null'].rms):.4f} px")
-    assert float(cal.rms) < 0.5 * float(r["cal_null"].rms)
+    print(f"  null (integer-pixel corners): RMS {float(r['cal_null'].rms_px):.4f} px")
+    assert float(cal.rms_px) < 0.5 * float(r["cal_null"].rms_px)
 
 
 def _synthetic_views(truth, n_views, noise, seed, size=(640, 512)):
@@ -74,7 +74,7 @@ def test_synthetic_known_truth():
     d_e = np.asarray(distort_normalized(jnp.asarray(est[4:]), jnp.asarray(xy))) - xy
     field = np.abs(d_e - d_t).max() / np.abs(d_t).max()
     names = list(cal.params)
-    print(f"synthetic calibration, 14 views x 54 corners, 0.2 px noise: RMS {float(cal.rms):.4f} px; rel. error (1-sigma) "
+    print(f"synthetic calibration, 14 views x 54 corners, 0.2 px noise: RMS {float(cal.rms_px):.4f} px; rel. error (1-sigma) "
           + ", ".join(f"{n} {100 * e:.3f} % ({100 * s:.3f} %)" for n, e, s in zip(names, rel, sd)))
     print(f"  distortion field (whole image) max error {100 * field:.3f} % of its max "
           f"({np.abs(d_t).max() * truth[0]:.1f} px); k1 {100 * rel[4]:.3f} %")

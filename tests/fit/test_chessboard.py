@@ -7,6 +7,7 @@ import pytest
 
 from fsjax.fit.chessboard import board_points, find_chessboard, refine_corners, saddle_response
 from fsjax.tour.calibration import measure_real_chessboard
+from fsjax.types import reason_code
 
 
 def _render_board(H, nx=7, ny=5, shape=(200, 260), ss=4):
@@ -65,7 +66,7 @@ def test_synthetic_perspective_board(seed):
     img = gaussian_filter(_render_board(H, nx, ny, ss=8), 1.0) + rng.normal(0, 0.01, (200, 260))
     res = find_chessboard(img, (nx, ny), win=5)
     truth = _truth(H, nx, ny)
-    assert bool(res.found), res.reason
+    assert bool(res.converged), res.message
     q = np.asarray(res.corners)
     # the 180-degree ambiguity of the board frame: compare with the matching orientation
     if np.linalg.norm(q - truth[::-1], axis=1).max() < np.linalg.norm(q - truth, axis=1).max():
@@ -85,15 +86,15 @@ def test_not_found_fails_closed():
     rng = np.random.default_rng(3)
     noise = rng.uniform(0.3, 0.7, (120, 160))
     r = find_chessboard(noise, (9, 6))
-    assert not bool(r.found) and r.reason and np.all(np.isnan(np.asarray(r.corners)))
+    assert not bool(r.converged) and r.detail and np.all(np.isnan(np.asarray(r.corners)))
     flat = np.full((60, 80), 0.5)
     r2 = find_chessboard(flat, (9, 6))
-    assert not bool(r2.found) and "saddle" in r2.reason
+    assert not bool(r2.converged) and "saddle" in r2.detail
     # a real board asked for the wrong pattern (more corners than it has)
     img = measure_real_chessboard()["images"][0]
     r3 = find_chessboard(img, (11, 8))
-    print(f"not found: noise -> {r.reason!r}; flat -> {r2.reason!r}; 11x8 on a 9x6 board -> {r3.reason!r}")
-    assert not bool(r3.found) and np.all(np.isnan(np.asarray(r3.corners)))
+    print(f"not found: noise -> {r.message!r}; flat -> {r2.message!r}; 11x8 on a 9x6 board -> {r3.message!r}")
+    assert not bool(r3.converged) and np.all(np.isnan(np.asarray(r3.corners)))
 
 
 def test_wrong_pattern_size_refused():
@@ -108,11 +109,12 @@ def test_wrong_pattern_size_refused():
     img = chessboard_images(as_float=False)[0]
     for pat in [(7, 7), (5, 4), (8, 5), (10, 7)]:
         r = find_chessboard(img, pat)
-        print(f"{pat} on a 9x6 board -> found={bool(r.found)}: {r.reason}")
-        assert not bool(r.found) and "does not match the board" in r.reason
+        print(f"{pat} on a 9x6 board -> found={bool(r.converged)}: {r.message}")
+        assert not bool(r.converged) and "does not match the board" in r.detail
+        assert int(r.reason) == reason_code("pattern_mismatch")
         assert np.all(np.isnan(np.asarray(r.corners)))
     for pat in [(9, 6), (6, 9)]:  # the right board either way round
-        assert bool(find_chessboard(img, pat).found)
+        assert bool(find_chessboard(img, pat).converged)
 
 
 def test_refine_exact_on_symmetric_corner():

@@ -28,7 +28,7 @@ def test_threshold_and_gaps():
     # max gap forces a frame on a slow pan
     slow = _yaw_stream(np.full(30, 0.5))
     s2 = F.select_frames_by_rotation(slow, threshold_deg=10.0, max_gap=8)
-    assert s2.indices.tolist() == [0, 8, 16, 24] and set(s2.reason[s2.keep][1:]) == {2}
+    assert s2.indices.tolist() == [0, 8, 16, 24] and set(s2.why_kept[s2.keep][1:]) == {2}
     # min gap stops a fast turn from keeping every frame
     fast = _yaw_stream(np.full(20, 30.0))
     s3 = F.select_frames_by_rotation(fast, threshold_deg=10.0, min_gap=3)

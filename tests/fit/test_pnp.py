@@ -48,7 +48,7 @@ def test_ransac_pnp_with_outliers(seed):
           f"{er:.4f} deg, |t error| {et:.4f} (depth 7); inliers {int(res.n_inliers)}, outliers rejected "
           f"{np.sum(~inl[:k])}/{k}; RMS {float(res.rms_px):.3f} px; converged {bool(res.converged)}; "
           f"null (no RANSAC) rotation error {_rot_err_deg(plain.R, R):.3f} deg")
-    assert bool(res.valid) and res.message == "ok"
+    assert bool(res.converged) and res.message == "ok"
     assert er < 0.1 and et < 0.05
     assert np.all(~inl[:k]) and inl[k:].mean() > 0.95
     assert er < _rot_err_deg(plain.R, R)
@@ -77,7 +77,7 @@ def test_fail_closed():
     copr = solve_pnp_ransac(jax.random.PRNGKey(0), flat, uvf, K)
     print(f"5 points -> {few.message!r}; coplanar -> {cop.message!r}; RANSAC coplanar -> {copr.message!r}")
     for r in (few, cop, copr):
-        assert not bool(r.valid) and np.all(np.isnan(np.asarray(r.R))) and np.all(np.isnan(np.asarray(r.t)))
+        assert not bool(r.converged) and np.all(np.isnan(np.asarray(r.R))) and np.all(np.isnan(np.asarray(r.t)))
     assert "too few" in few.message and "coplanar" in cop.message and "coplanar" in copr.message
     with pytest.raises(ValueError, match="solve_pnp.*uv"):
         solve_pnp(X, uv[:-1], K)

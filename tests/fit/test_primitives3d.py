@@ -16,7 +16,7 @@ from fsjax.fit import (
     angle_planes,
     fit_circle3d,
     fit_cylinder,
-    fit_line,
+    fit_line3d,
     fit_plane,
     fit_quadric,
     fit_sphere,
@@ -93,7 +93,7 @@ def test_fits_recover_truth():
     nerr = np.degrees(np.arccos(min(1.0, abs(float(np.asarray(fp.params[:3]) @ R[:, 2])))))
     tl = rng.uniform(-2, 2, (100, 1))
     li = t + tl * R[:, 0] + 0.005 * rng.normal(size=(100, 3))
-    fl = fit_line(jnp.asarray(li))
+    fl = fit_line3d(jnp.asarray(li))
     lerr = np.degrees(np.arccos(min(1.0, abs(float(np.asarray(fl.params[3:]) @ R[:, 0])))))
     u = rng.normal(size=(300, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -106,11 +106,11 @@ def test_fits_recover_truth():
     cerr = max(np.linalg.norm(np.asarray(fc.params[:3]) - t), abs(float(fc["r"]) - 0.8))
     cy = sample("cylinder", 3, n=200, noise=0.005)
     fy = fit_cylinder(jnp.asarray(cy))
-    print(f"fits (noise 0.005): plane normal {nerr:.3f} deg rms {float(fp.rms):.4f}; line direction {lerr:.3f} deg; "
+    print(f"fits (noise 0.005): plane normal {nerr:.3f} deg rms {float(fp.rms_len):.4f}; line direction {lerr:.3f} deg; "
           f"sphere centre/radius error {serr:.4f}; 3-D circle {cerr:.4f}; cylinder radius {float(fy['r']):.4f} "
-          f"(truth 1), rms {float(fy.rms):.4f}")
+          f"(truth 1), rms {float(fy.rms_len):.4f}")
     assert nerr < 0.5 and lerr < 0.5 and serr < 0.01 and cerr < 0.01
-    assert abs(float(fy["r"]) - 1) < 0.01 and float(fy.rms) < 0.006
+    assert abs(float(fy["r"]) - 1) < 0.01 and float(fy.rms_len) < 0.006
     for f in (fp, fl, fs, fc, fy):
         assert bool(f.converged) and f.residuals.shape[0] > 0
     # residuals are orthogonal distances: the plane's equal point_plane_distance
@@ -131,7 +131,7 @@ def test_degenerate_fits_fail_closed():
     assert not bool(fit_quadric(jnp.asarray(line)).converged)
     nan = line.copy()
     nan[3] = np.nan  # a NaN point is excluded, not propagated
-    assert int(fit_line(jnp.asarray(nan)).n_used) == 19 and bool(fit_line(jnp.asarray(nan)).converged)
+    assert int(fit_line3d(jnp.asarray(nan)).n_used) == 19 and bool(fit_line3d(jnp.asarray(nan)).converged)
     with pytest.raises(ValueError, match="select_model.*criterion"):
         select_model(jnp.asarray(line), criterion="hqc")
 
@@ -162,7 +162,7 @@ def _selection_rates(trials):
         bic_pick = np.asarray(r.choice)
         aic_pick = np.argmin(np.asarray(r.aic), axis=1)
         rates[kind] = (float(np.mean(bic_pick == i)), float(np.mean(aic_pick == i)))
-        rms = np.asarray(r.rms)
+        rms = np.asarray(r.rms_len)
         evidence[kind] = [float(np.median(c[np.isfinite(c)])) if np.isfinite(c).any() else float("nan")
                           for c in rms.T]  # nan: that model's fit failed on every trial
     return rates, evidence

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 import fsjax
-from fsjax.fit import REASONS, ransac
+from fsjax.fit import ransac
+from fsjax.types import RESULTS, reason_code, reason_message
 
 KEY = jax.random.PRNGKey(0)
 
@@ -46,8 +47,8 @@ def test_plane_with_outliers_and_determinism():
     null_n = np.linalg.eigh(np.cov((x - c).T))[1][:, 0]
     null_err = _angle(null_n, nrm)
     print(f"RANSAC plane, 40 % outliers: normal error {err:.3f} deg, d error {abs(abs(float(res['d'])) - 0.1):.1e}, "
-          f"inlier recall {recall:.3f}, rms {float(res.rms):.4f}; null (TLS on all points) {null_err:.1f} deg")
-    assert bool(res.converged) and res.reason_text() == "ok"
+          f"inlier recall {recall:.3f}, rms {float(res.rms_len):.4f}; null (TLS on all points) {null_err:.1f} deg")
+    assert bool(res.converged) and res.message == "ok"
     assert err < 0.2 and recall > 0.99 and err < null_err
     again = ransac(KEY, jnp.asarray(x), "plane", threshold=0.01)
     assert all(np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True)
@@ -84,17 +85,17 @@ def test_sphere_line_cylinder():
 def test_degenerate_input_fails_closed():
     line = np.c_[np.linspace(0, 1, 50), 2 * np.linspace(0, 1, 50), np.zeros(50)]
     r = ransac(KEY, jnp.asarray(line), "plane", threshold=0.01)
-    assert not bool(r.converged) and r.reason_text().startswith("degenerate")
+    assert not bool(r.converged) and r.message.startswith("degenerate")
     assert bool(jnp.all(jnp.isnan(r.params))) and not bool(jnp.any(r.inliers))
     # nearly collinear (noise below the threshold): still degenerate, not a plausible plane
     noisy = line + 1e-4 * np.random.default_rng(0).normal(size=line.shape)
     r = ransac(KEY, jnp.asarray(noisy), "plane", threshold=0.01)
-    assert not bool(r.converged) and r.reason == 3
+    assert not bool(r.converged) and r.reason == reason_code("degenerate")
     two = jnp.zeros(50, bool).at[:2].set(True)
     r = ransac(KEY, jnp.asarray(line), "plane", threshold=0.01, valid=two)
-    assert not bool(r.converged) and r.reason_text() == REASONS[1]
+    assert not bool(r.converged) and r.message == reason_message(reason_code("too_few"))
     r = ransac(KEY, jnp.asarray(line), "plane", threshold=0.01, valid=jnp.zeros(50, bool))
-    assert not bool(r.converged) and r.reason == 1
+    assert not bool(r.converged) and r.result == RESULTS.too_few
     # coplanar points have no sphere
     g = np.random.default_rng(1).uniform(-1, 1, (50, 2))
     r = ransac(KEY, jnp.asarray(np.c_[g, np.zeros(50)]), "sphere", threshold=0.01)
@@ -103,7 +104,7 @@ def test_degenerate_input_fails_closed():
     x = np.c_[g, 0.1 * g[:, 0]]
     x[5] = np.nan
     r = ransac(KEY, jnp.asarray(x), "plane", threshold=0.01)
-    assert not bool(r.converged) and r.reason == 2
+    assert not bool(r.converged) and r.reason == reason_code("invalid_input")
     with pytest.raises(ValueError, match="NaN"):
         fsjax.Points(jnp.asarray(x)).check(op="ransac", arg="points")
     with pytest.raises(ValueError, match="ransac.*model"):
@@ -127,7 +128,7 @@ def test_curved_model_on_a_flat_patch_refused():
         r = ransac(jax.random.PRNGKey(0), jnp.asarray(flat, jnp.float32), "cylinder", threshold=0.01)
         r = jax.tree_util.tree_map(np.asarray, r)
     assert not bool(r.converged) and bool(np.all(np.isnan(r.params)))
-    assert r.reason_text() == REASONS[6] and "plane" in REASONS[6]
+    assert r.result == RESULTS.unsupported_model and "plane" in r.message
 
 
 RATIOS = (0.0, 0.3, 0.6, 0.7, 0.8, 0.9)

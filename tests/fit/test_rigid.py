@@ -73,7 +73,7 @@ def test_kabsch_vs_scipy_weighted_and_scale():
     d = float(rotation_error_deg(fit.R, jnp.asarray(ref.as_matrix())))
     print(f"weighted Umeyama vs scipy align_vectors: rotation diff {d:.1e} deg, scale {float(fit.scale):.4f} "
           f"(true 1.7), error vs truth {float(rotation_error_deg(fit.R, jnp.asarray(rt.as_matrix()))):.3f} deg")
-    assert d < 1e-9 and bool(fit.valid)
+    assert d < 1e-9 and bool(fit.converged)
     assert abs(float(fit.scale) - 1.7) < 0.01
 
 
@@ -107,12 +107,12 @@ def test_kabsch_fails_closed():
     cases["NaN"] = (kabsch_umeyama(jnp.asarray(bad), jnp.asarray(src)), 4)
     for name, (fit, code) in cases.items():
         print(f"{name}: reason {int(fit.reason)} ({fit.message})")
-        assert int(fit.reason) == code and not bool(fit.valid)
+        assert int(fit.reason) == code and not bool(fit.converged)
         assert np.all(np.isnan(np.asarray(fit.R))) and np.all(np.isnan(np.asarray(fit.t)))
     # a NaN point with weight 0 is ignored
     w = np.ones(10)
     w[4] = 0
-    assert bool(kabsch_umeyama(jnp.asarray(bad), jnp.asarray(src), weights=jnp.asarray(w)).valid)
+    assert bool(kabsch_umeyama(jnp.asarray(bad), jnp.asarray(src), weights=jnp.asarray(w)).converged)
     with pytest.raises(ValueError, match="kabsch_umeyama"):
         kabsch_umeyama(jnp.zeros((5, 2)), jnp.zeros((5, 2)))
 
@@ -146,7 +146,7 @@ def test_pca_pose_recovered_including_left_handed(mirror):
     assert err.max() < 1e-6
     assert np.allclose(dets, 1.0, atol=1e-12)
     assert raw_left > 0 and null_ok < 40
-    assert not bool(base.ambiguous) and bool(base.valid)
+    assert not bool(base.ambiguous) and bool(base.converged)
     # exactly one of the bunny and its mirror image has a left-handed skewness frame (the real bunny's is):
     # the rule flipped an axis there, gave a proper rotation, and did not fall back to the identity
     other = pca_canonical_pose(jnp.asarray(x * np.array([-1.0, 1.0, 1.0])))
@@ -163,13 +163,13 @@ def test_pca_pose_ambiguous_and_bad_input():
     print(f"symmetric cloud: ambiguous={bool(p.ambiguous)}, |skewness| max {np.abs(np.asarray(p.skewness)).max():.1e}")
     assert bool(p.ambiguous)
     few = pca_canonical_pose(jnp.asarray(rng.normal(size=(3, 3))))
-    assert not bool(few.valid) and np.all(np.isnan(np.asarray(few.R)))
+    assert not bool(few.converged) and np.all(np.isnan(np.asarray(few.R)))
     bad = rng.normal(size=(50, 3))
     bad[0, 0] = np.inf
-    assert not bool(pca_canonical_pose(jnp.asarray(bad)).valid)
+    assert not bool(pca_canonical_pose(jnp.asarray(bad)).converged)
     v = np.ones(50, bool)
     v[0] = False
-    assert bool(pca_canonical_pose(jnp.asarray(bad), jnp.asarray(v)).valid)
+    assert bool(pca_canonical_pose(jnp.asarray(bad), jnp.asarray(v)).converged)
 
 
 def test_docstring_examples():

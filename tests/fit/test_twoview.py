@@ -16,6 +16,7 @@ from fsjax.fit.twoview import (
     sampson_distance,
     triangulate_dlt,
 )
+from fsjax.types import reason_code
 
 K = np.array([[520.0, 0, 320.0], [0, 515.0, 240.0], [0, 0, 1.0]])
 
@@ -52,7 +53,7 @@ def test_relative_pose_accuracy(seed):
     print(f"two-view seed {seed} (200 pts, 0.3 px noise, 20 % outliers): rotation error {er:.3f} deg, translation "
           f"direction {et:.3f} deg; inliers {int(res.n_inliers)} (outliers flagged {np.sum(~inl[:k])}/{k}); "
           f"Sampson RMS {float(res.sampson_rms_px):.3f} px; parallax {float(res.parallax_px):.1f} px")
-    assert bool(res.valid) and not bool(res.degenerate) and res.message == "ok"
+    assert bool(res.converged) and not bool(res.degenerate) and res.message == "ok"
     assert er < 0.5 and et < 1.0
     assert np.sum(~inl[:k]) >= 0.95 * k
     # triangulated inliers: camera-1 coordinates in baseline units
@@ -72,7 +73,7 @@ def test_pure_rotation_is_degenerate():
     print(f"parallax residual after the best single rotation: pure rotation {float(deg.parallax_px):.3f} px "
           f"(degenerate={bool(deg.degenerate)}, '{deg.message}'); healthy baseline {float(ok.parallax_px):.2f} px "
           f"(degenerate={bool(ok.degenerate)}); rotation from the alignment error {_rot_err_deg(deg.R, R):.4f} deg")
-    assert bool(deg.degenerate) and bool(deg.valid) and np.all(np.isnan(np.asarray(deg.t)))
+    assert bool(deg.degenerate) and int(deg.reason) == reason_code("pure_rotation") and np.all(np.isnan(np.asarray(deg.t)))
     assert np.all(np.isnan(np.asarray(deg.points)))
     assert _rot_err_deg(deg.R, R) < 0.1
     assert not bool(ok.degenerate) and float(ok.parallax_px) > 10 * float(deg.parallax_px)
@@ -96,11 +97,11 @@ def test_building_blocks():
 def test_fail_closed():
     uv1, uv2, *_ = _scene(0, n=6, outliers=0.0)
     r = relative_pose(jax.random.PRNGKey(0), uv1, uv2, K)
-    assert not bool(r.valid) and "too few" in r.message and np.all(np.isnan(np.asarray(r.R)))
+    assert not bool(r.converged) and "too few" in r.message and np.all(np.isnan(np.asarray(r.R)))
     rng = np.random.default_rng(0)
     r2 = relative_pose(jax.random.PRNGKey(0), rng.uniform(0, 640, (50, 2)), rng.uniform(0, 640, (50, 2)), K,
                        threshold_px=0.05)
     print(f"6 points -> {r.message!r}; random pairs, 0.05 px threshold -> {r2.message!r}")
-    assert not bool(r2.valid) or bool(r2.degenerate)
+    assert not bool(r2.converged) or bool(r2.degenerate)
     with pytest.raises(ValueError, match="relative_pose.*uv2"):
         relative_pose(jax.random.PRNGKey(0), np.zeros((10, 2)), np.zeros((9, 2)), K)
