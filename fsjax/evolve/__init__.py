@@ -19,8 +19,8 @@ from .genome import champion_record as champion_record
 from .genome import decode as decode
 from .genome import encode as encode
 from .genome import enumerate_skeletons as enumerate_skeletons
-from .genome import type_skeleton as type_skeleton
 from .genome import stage_vocabulary as stage_vocabulary
+from .genome import type_skeleton as type_skeleton
 from .population import Evaluator as Evaluator
 from .problems import PROBLEMS as PROBLEMS
 from .problems import Problem as Problem
