@@ -23,17 +23,20 @@ __all__ = ["Chain", "Stage", "SortGraph", "IMAGE_KINDS", "build_input", "generat
 # new shape compiles every primitive again.
 IMAGE_KINDS: dict[str, tuple[float, tuple[int, int] | None]] = {
     "scene": (4.0, None),        # the standard scene (fsjax.synth.standard_input), size drawn from SIZES
-    "photo": (1.5, (32, 32)),    # skimage.data.camera, block-averaged (a real photograph)
+    "photo": (1.5, (16, 16)),    # skimage.data.camera, block-averaged (a real photograph)
     "constant": (1.0, (16, 16)),
     "spike": (1.0, (16, 16)),    # a single bright pixel on black
     "large": (1.0, (16, 16)),    # the scene times 1e6 (very large values)
     "tiny": (0.7, (1, 1)),
     "odd": (1.0, (3, 5)),
-    "nan": (0.3, (8, 8)),        # all-NaN: must be refused at the door
+    "nan": (0.3, (16, 16)),      # all-NaN: must be refused at the door
 }
-SIZES: tuple[tuple[int, int], ...] = ((16, 16), (15, 17), (24, 32))
+SIZES: tuple[tuple[int, int], ...] = ((16, 16), (15, 17))
 DTYPES: tuple[str, ...] = ("float64", "float32")
 RASTER_KINDS = ("scene", "constant", "empty")  # other raster sorts (Color, Region, Labels, ...)
+# sorts whose "constant" variant is a meaningful input (a flat raster, volume or profile);
+# others (points, meshes, cameras, contours) always come as the pool's scene
+RASTER_SORTS = frozenset({"Color", "HSV", "Lab", "Region", "Labels", "Depth", "Volume", "Signal"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,9 +153,11 @@ def build_input(sort: type, kind: str, size: tuple[int, int], dtype: str, varian
     """One pool input: ``sort`` of ``kind`` at ``size`` (raster sorts) in ``dtype``."""
     import jax.numpy as jnp
 
+    from fsjax.registry import list_ops
     from fsjax.synth import standard_input
     from fsjax.types import Image, Region
 
+    list_ops()  # op families register the pool builders of the sorts they introduce
     size = tuple(size)
     if sort is Image:
         return Image(jnp.asarray(_image_array(kind, variant, size), dtype=dtype))
@@ -299,7 +304,7 @@ def _input_for(sort: type, rng: random.Random) -> dict:
     else:
         kind = _weighted(rng, list(RASTER_KINDS), [4.0, 1.0, 0.5])
         size = rng.choice(SIZES)
-        if kind == "empty" and sort.__name__ != "Region":
+        if (kind == "empty" and sort.__name__ != "Region") or sort.__name__ not in RASTER_SORTS:
             kind = "scene"
     return {"sort": sort.__name__, "kind": kind, "size": tuple(size), "dtype": dtype, "variant": 0}
 

@@ -137,7 +137,7 @@ def _default_specs():
 def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequence[Any] | None = None,
          minimise_failures: bool = True, grad: bool = True, vmap: bool = True,
          time_budget_s: float | None = None, progress: Callable[[str], None] | None = None,
-         max_minimise_trials: int = 12) -> FuzzRun:
+         max_minimise_trials: int = 12, journal: str | os.PathLike | None = None) -> FuzzRun:
     """Generate and run ``n_chains`` random typed chains of length ``1..max_length``.
 
     Args:
@@ -145,6 +145,8 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
       minimise_failures: shrink the first chain of every signature (:func:`minimise`).
       time_budget_s: stop generating new chains after this many seconds (recorded).
       progress: called with a one-line status now and then (e.g. ``print``).
+      journal: a file to which every chain and its outcome is appended as one JSON line as
+        it finishes (a long run can be read while it goes).
     """
     specs = list(_default_specs() if specs is None else specs)
     graph = SortGraph(specs, pool_sorts(specs))
@@ -158,7 +160,11 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
             run.stopped_early = f"time budget {time_budget_s:.0f} s reached after {k} chains"
             break
         chain = generate_chain(graph, rng, max_length, uses)
-        run.results.append((chain, runner.run(chain)))
+        o = runner.run(chain)
+        run.results.append((chain, o))
+        if journal is not None:
+            with open(journal, "a") as fh:
+                fh.write(json.dumps({"chain": chain.to_json(), "outcome": o.to_json()}, default=str) + "\n")
         if progress and (k + 1) % 25 == 0:
             cc = {c: n for c, n in run.class_counts().items() if n}
             progress(f"fuzz: {k + 1}/{n_chains} chains, {time.perf_counter() - t0:.0f} s, "
@@ -377,8 +383,11 @@ def cli_main(args) -> int:
     if not args.out:
         raise ValueError("fuzz: --out DIR is required (unless --replay FILE)")
     cmd = "fsjax fuzz " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
+    Path(args.out).mkdir(parents=True, exist_ok=True)
+    journal = Path(args.out) / "chains.jsonl"
+    journal.write_text("")
     run = fuzz(args.chains, args.length, args.seed, time_budget_s=args.minutes * 60 if args.minutes else None,
-               progress=lambda s: print(s, flush=True), grad=not args.no_grad)
+               progress=lambda s: print(s, flush=True), grad=not args.no_grad, journal=journal)
     path = write_report(run, args.out, command=cmd)
     cc = {k: v for k, v in run.class_counts().items() if v}
     print(f"fsjax fuzz: {len(run.results)} chains in {run.seconds:.0f} s; ops executed "

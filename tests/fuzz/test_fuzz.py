@@ -157,3 +157,4 @@ def test_generated_chains_type_correct_and_report(planted, tmp_path):
     assert len(lines) == sum(run.class_counts().values())
     for line in lines:
         assert fz.Chain.from_json(json.loads(line)["chain"]).stages
+
