@@ -1,7 +1,14 @@
-"""All registered ops, one private module per family, re-exported here.
+"""All registered ops, re-exported here: ``fsjax.ops.<name>`` is the one public path.
 
-Each family module lists its public ops in ``__all__`` (the one export list);
-importing this package registers every op.
+Op families live in private modules grouped by domain: :mod:`.image` (filters,
+morphology, thresholds, edges, frequency, colour, pixel-wise maps, geometry, distance,
+skeleton, binary, features), :mod:`.measure2d` (labels, segmentation, region
+measurement, contours, calipers, 2-D fits), :mod:`.matching` (correlation and shape
+matching), :mod:`.points` (point clouds, curvature, neighbour search, segmentation) and
+:mod:`.measure3d` (photometric stereo, structured light, tomography, camera, rendering).
+Each family module lists its public names in ``__all__`` (the one export list); the
+domain packages export nothing themselves. Importing this package registers every op.
+Shared op-only helpers are in :mod:`._common`; argument checks in :mod:`fsjax._checks`.
 """
 
 # Sorts that op modules defined before they moved home to fsjax.types (same objects; the

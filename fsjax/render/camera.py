@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_range, check_static_int
 from ..types import Camera, is_concrete
 
 __all__ = [
@@ -77,13 +78,13 @@ def intrinsics_from_fov(width: int, height: int, *, fov_x_deg: float | None = No
         >>> [round(float(K[0, 0]), 6), float(K[0, 2]), float(K[1, 2])]
         [320.0, 319.5, 239.5]
     """
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"intrinsics_from_fov(width, height): must be positive, got {width} x {height}")
+    check_static_int("intrinsics_from_fov", "width", width, lo=1)
+    check_static_int("intrinsics_from_fov", "height", height, lo=1)
     if fov_x_deg is None and fov_y_deg is None:
         raise ValueError("intrinsics_from_fov(fov_x_deg=..., fov_y_deg=...): give at least one field of view")
     for name, v in (("fov_x_deg", fov_x_deg), ("fov_y_deg", fov_y_deg)):
-        if v is not None and not (0.0 < float(v) < 180.0):
-            raise ValueError(f"intrinsics_from_fov({name}=...): must be in (0, 180) degrees, got {v}")
+        if v is not None:
+            check_range("intrinsics_from_fov", name, v, 0.0, 180.0, lo_open=True, hi_open=True)
     fx = None if fov_x_deg is None else (width / 2.0) / math.tan(math.radians(fov_x_deg) / 2.0)
     fy = None if fov_y_deg is None else (height / 2.0) / math.tan(math.radians(fov_y_deg) / 2.0)
     fx = fy if fx is None else fx

@@ -35,7 +35,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ..types import is_concrete
+from .._checks import check_choice, check_positive, check_range, is_concrete
 
 __all__ = [
     "fresnel_dielectric",
@@ -51,11 +51,6 @@ __all__ = [
 XYZ_TO_LINEAR_SRGB = np.asarray([[3.2404542, -1.5371385, -0.4985314],
                                  [-0.9692660, 1.8760108, 0.0415560],
                                  [0.0556434, -0.2040259, 1.0572252]])
-
-
-def _positive(name, v, fn):
-    if is_concrete(jnp.asarray(v)) and not bool(np.all(np.asarray(v) > 0)):
-        raise ValueError(f"{fn}({name}=...): must be > 0, got {v}")
 
 
 def _cos_t(n_a, n_b, cos_a):
@@ -108,13 +103,11 @@ def thin_film_reflectance(n_ambient, n_film, n_substrate, *, thickness_nm, wavel
         0.077113
     """
     fn = "thin_film_reflectance"
-    if polarization not in ("s", "p", "unpolarized"):
-        raise ValueError(f"{fn}(polarization=...): expected one of 's', 'p', 'unpolarized', got {polarization!r}")
+    check_choice(fn, "polarization", polarization, ("s", "p", "unpolarized"))
     for name, v in (("n_ambient", n_ambient), ("n_film", n_film), ("n_substrate", n_substrate),
                     ("wavelength_nm", wavelength_nm)):
-        _positive(name, v, fn)
-    if is_concrete(jnp.asarray(thickness_nm)) and not bool(np.all(np.asarray(thickness_nm) >= 0)):
-        raise ValueError(f"{fn}(thickness_nm=...): must be >= 0, got {thickness_nm}")
+        check_positive(fn, name, v)
+    check_range(fn, "thickness_nm", thickness_nm, 0.0)
     dt = jnp.result_type(float)
     n0, n1, n2 = (jnp.asarray(x, dt) for x in (n_ambient, n_film, n_substrate))
     d = jnp.asarray(thickness_nm, dt)
@@ -147,8 +140,8 @@ def grating_angles(wavelength_nm, pitch_um, *, incidence_deg=0.0, order=1):
         >>> [round(float(fsjax.render.grating_angles(550.0, 1.6, order=m)), 4) for m in (1, -1)]
         [20.1055, -20.1055]
     """
-    _positive("wavelength_nm", wavelength_nm, "grating_angles")
-    _positive("pitch_um", pitch_um, "grating_angles")
+    check_positive("grating_angles", "wavelength_nm", wavelength_nm)
+    check_positive("grating_angles", "pitch_um", pitch_um)
     dt = jnp.result_type(float)
     s = jnp.sin(jnp.deg2rad(jnp.asarray(incidence_deg, dt))) + jnp.asarray(order, dt) * jnp.asarray(
         wavelength_nm, dt) / (1000.0 * jnp.asarray(pitch_um, dt))

@@ -60,6 +60,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._checks import check_static_int
 from ..types import Camera, Mesh, is_concrete
 from .splat import _bucket, _slot_owner
 
@@ -125,7 +126,7 @@ def vertex_normals(mesh: Mesh) -> jnp.ndarray:
     return _safe_normalize(acc)
 
 
-def _check(mesh: Mesh, camera: Camera, tile: int, capacity: int, fn: str) -> None:
+def _check(mesh: Mesh, camera: Camera, tile: int, capacity: int, fn: str) -> tuple[int, int]:
     if not isinstance(mesh, Mesh):
         raise TypeError(f"{fn}(mesh=...): expected a Mesh, got {type(mesh).__name__}")
     if not isinstance(camera, Camera):
@@ -138,12 +139,12 @@ def _check(mesh: Mesh, camera: Camera, tile: int, capacity: int, fn: str) -> Non
                          f"{mesh.faces.shape[0]} faces)")
     if is_concrete(mesh.face_valid) and not bool(np.any(np.asarray(mesh.face_valid))):
         raise ValueError(f"{fn}(mesh=...): the mesh has no valid face")
-    for name, v in (("tile", tile), ("capacity", capacity)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or int(v) < 1:
-            raise ValueError(f"{fn}({name}=...): must be a positive static int, got {v!r}")
+    tile = check_static_int(fn, "tile", tile, lo=1)
+    capacity = check_static_int(fn, "capacity", capacity, lo=1)
     if is_concrete(camera.dist) and bool(np.any(np.asarray(camera.dist) != 0)):
         raise ValueError(f"{fn}(camera=...): the rasteriser is pinhole-only; got non-zero distortion "
                          f"{np.asarray(camera.dist).tolist()} (undistort the image instead)")
+    return tile, capacity
 
 
 def _rays(K, H, W, dtype):
@@ -404,10 +405,9 @@ def rasterize(mesh: Mesh, camera: Camera, *, tile: int = 16, capacity: int = 256
         >>> float(jnp.max(jnp.abs(r.depth - 3.0))), int(r.overflow), float(r.alpha.mean())
         (0.0, 0, 1.0)
     """
-    _check(mesh, camera, tile, capacity, "rasterize")
-    if max_fragments is not None and (isinstance(max_fragments, bool) or not isinstance(max_fragments, (int, np.integer))
-                                      or int(max_fragments) < 1):
-        raise ValueError(f"rasterize(max_fragments=...): must be a positive static int, got {max_fragments!r}")
+    tile, capacity = _check(mesh, camera, tile, capacity, "rasterize")
+    if max_fragments is not None:
+        max_fragments = check_static_int("rasterize", "max_fragments", max_fragments, lo=1)
     H, W = camera.height, camera.width
     if max_fragments is None:
         leaves = [x for x in jax.tree_util.tree_leaves((mesh, camera, near)) if isinstance(x, (jax.Array, np.ndarray))]

@@ -29,7 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..types import Mesh, is_concrete
+from .._checks import check_range, check_static_int
+from ..types import Mesh
 from .raster import _bin
 from .shading import unit
 
@@ -155,9 +156,8 @@ def _grid_occlusion(mesh, points, L, ignore_face, s_min, grid, capacity, pairs, 
 
     Returns ``occluded (N,)``, ``incomplete (N,)`` and ``overflow``.
     """
-    for name, val in (("grid", grid), ("capacity", capacity)):
-        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or int(val) < 1:
-            raise ValueError(f"{fn}({name}=...): must be a positive static int, got {val!r}")
+    grid = check_static_int(fn, "grid", grid, lo=1)
+    capacity = check_static_int(fn, "capacity", capacity, lo=1)
     v0, e1, e2, ok = _tri(mesh, fn)
     P = jnp.asarray(points, v0.dtype).reshape(-1, 3)
     N = P.shape[0]
@@ -255,10 +255,8 @@ def sun_directions(direction, *, angular_diameter_deg=0.53, samples: int = 16) -
         (True, (32, 3))
     """
     L = unit(jnp.asarray(direction, dtype=jnp.result_type(float)), name="direction", fn="sun_directions")
-    if is_concrete(jnp.asarray(angular_diameter_deg)) and not (0.0 <= float(angular_diameter_deg) < 180.0):
-        raise ValueError(f"sun_directions(angular_diameter_deg=...): must be in [0, 180), got {angular_diameter_deg}")
-    if int(samples) < 1:
-        raise ValueError(f"sun_directions(samples=...): must be >= 1, got {samples}")
+    check_range("sun_directions", "angular_diameter_deg", angular_diameter_deg, 0.0, 180.0, hi_open=True)
+    samples = check_static_int("sun_directions", "samples", samples, lo=1)
     if int(samples) == 1:
         return L[None]
     a, b = _basis(L)
@@ -295,9 +293,8 @@ def sun_visibility(mesh: Mesh, points, direction, *, angular_diameter_deg=0.53, 
     def one(d):
         return _grid_occlusion(mesh, points, d, ignore_face, s_min, grid, capacity, pairs, batch, "sun_visibility")
 
-    for name, val in (("grid", grid), ("capacity", capacity)):
-        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or int(val) < 1:
-            raise ValueError(f"sun_visibility({name}=...): must be a positive static int, got {val!r}")
+    grid = check_static_int("sun_visibility", "grid", grid, lo=1)
+    capacity = check_static_int("sun_visibility", "capacity", capacity, lo=1)
     occ, inc, ovf = jax.lax.map(one, dirs)
     vis = 1.0 - jnp.mean(occ.astype(dirs.dtype), axis=0)
     return vis, jnp.any(inc, axis=0), jnp.sum(ovf).astype(jnp.int32)

@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._checks import check_positive, check_range, check_static_int
 from ..types import Camera, is_concrete
 from .camera import pixel_rays
 
@@ -549,8 +550,7 @@ def orthographic_rays(R, t, width: int, height: int, pixel_size: float):
     """
     R = _arr(R)
     t = _arr(t, R.dtype)
-    if not float(pixel_size) > 0:
-        raise ValueError(f"orthographic_rays(pixel_size=...): must be > 0, got {pixel_size}")
+    check_positive("orthographic_rays", "pixel_size", pixel_size)
     r, c = jnp.meshgrid(jnp.arange(height, dtype=R.dtype), jnp.arange(width, dtype=R.dtype), indexing="ij")
     x = (c - (width - 1) / 2.0) * pixel_size
     y = (r - (height - 1) / 2.0) * pixel_size
@@ -601,11 +601,9 @@ def trace_rays(scene, origins, directions, *, axis=None, light_dir=None, light_a
     """
     if not isinstance(scene, (SDFScene, SDF)):
         raise TypeError(f"trace_rays(scene=...): expected an SDFScene or SDF, got {type(scene).__name__}")
-    if int(max_steps) <= 0:
-        raise ValueError(f"trace_rays(max_steps=...): must be a positive int, got {max_steps}")
-    if not 0.0 < float(light_angular_diameter_deg) < 180.0:
-        raise ValueError("trace_rays(light_angular_diameter_deg=...): must be in (0, 180) degrees, "
-                         f"got {light_angular_diameter_deg}")
+    max_steps = check_static_int("trace_rays", "max_steps", max_steps, lo=1)
+    check_range("trace_rays", "light_angular_diameter_deg", light_angular_diameter_deg, 0.0, 180.0,
+                lo_open=True, hi_open=True)
     light = _check_light(light_dir, "trace_rays")
     o = jnp.asarray(origins)
     d = jnp.asarray(directions, o.dtype)

@@ -63,6 +63,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._checks import check_positive, check_range, check_static_int
 from ..types import Camera, Gaussians, is_concrete
 from .camera import world_to_camera
 
@@ -198,16 +199,12 @@ def _check(g, cam, fn, *, alpha_min, alpha_max, near, dilation_px2):
     if is_concrete(cam.dist) and bool(np.any(np.asarray(cam.dist) != 0)):
         raise ValueError(f"{fn}(camera=...): splatting uses the pinhole model; the camera has non-zero "
                          "distortion (undistort the images first)")
-    for name, v, lo, hi in (("alpha_min", alpha_min, 0.0, 1.0), ("alpha_max", alpha_max, 0.0, 1.0)):
-        if is_concrete(v) and not (lo < float(v) < hi):
-            raise ValueError(f"{fn}({name}=...): must be in ({lo}, {hi}), got {v}")
+    for name, v in (("alpha_min", alpha_min), ("alpha_max", alpha_max)):
+        check_range(fn, name, v, 0.0, 1.0, lo_open=True, hi_open=True)
     if is_concrete(alpha_min) and is_concrete(alpha_max) and not float(alpha_min) < float(alpha_max):
         raise ValueError(f"{fn}(alpha_min=...): must be below alpha_max={alpha_max}, got {alpha_min}")
-    if is_concrete(near) and not float(near) > 0:
-        raise ValueError(f"{fn}(near=...): must be > 0, got {near}")
-    if is_concrete(dilation_px2) and not float(dilation_px2) > 0:
-        raise ValueError(f"{fn}(dilation_px2=...): must be > 0 (it keeps 2-D covariances invertible), "
-                         f"got {dilation_px2}")
+    check_positive(fn, "near", near)
+    check_positive(fn, "dilation_px2", dilation_px2)  # > 0 keeps the 2-D covariances invertible
 
 
 def project_gaussians(gaussians: Gaussians, camera: Camera, *, near: float = 0.01,
@@ -484,12 +481,12 @@ def render_splats(gaussians: Gaussians, camera: Camera, *, tile_size: int = 16, 
     """
     _check(gaussians, camera, "render_splats", alpha_min=alpha_min, alpha_max=alpha_max, near=near,
            dilation_px2=dilation_px2)
-    for name, v in (("tile_size", tile_size), ("capacity", capacity), ("max_pairs", max_pairs),
-                    ("chunk", chunk)):
-        if v is None and name in ("capacity", "max_pairs"):
-            continue
-        if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < 1:
-            raise ValueError(f"render_splats({name}=...): must be a static positive int, got {v!r}")
+    tile_size = check_static_int("render_splats", "tile_size", tile_size, lo=1)
+    chunk = check_static_int("render_splats", "chunk", chunk, lo=1)
+    if capacity is not None:
+        capacity = check_static_int("render_splats", "capacity", capacity, lo=1)
+    if max_pairs is not None:
+        max_pairs = check_static_int("render_splats", "max_pairs", max_pairs, lo=1)
     T = int(tile_size)
     tiles = (-(-camera.height // T)) * (-(-camera.width // T))
     if max_pairs is None:

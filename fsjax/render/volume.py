@@ -22,6 +22,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .._checks import check_choice, check_static_int
 from ..types import Camera, Image, Volume
 from .camera import pixel_rays
 
@@ -84,10 +85,8 @@ def project_volume(volume: Volume, camera: Camera, *, mode: str = "drr", n_sampl
         raise TypeError(f"{fn}(volume=...): expected a Volume, got {type(volume).__name__}")
     if volume.batch_shape:
         raise ValueError(f"{fn}(volume=...): expected one volume, got batch {volume.batch_shape}; use jax.vmap")
-    if mode not in ("drr", "mip"):
-        raise ValueError(f"{fn}(mode=...): expected 'drr' or 'mip', got {mode!r}")
-    if int(n_samples) < 2:
-        raise ValueError(f"{fn}(n_samples=...): must be >= 2, got {n_samples}")
+    check_choice(fn, "mode", mode, ("drr", "mip"))
+    n_samples = check_static_int(fn, "n_samples", n_samples, lo=2)
     n = int(n_samples)
     vol = volume.data
     o, d = pixel_rays(camera)
