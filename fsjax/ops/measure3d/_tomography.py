@@ -363,9 +363,8 @@ def volume_drr(volume: Volume, camera: Camera, /, *, n_samples: int = 256) -> Im
         >>> round(float(fsjax.ops.volume_drr(vol, cam).data[5, 5]), 9)  # 0.5 over 4 units
         2.0
     """
-    if int(n_samples) < 2:
-        raise ValueError(f"volume_drr(n_samples=...): must be >= 2, got {n_samples}")
-    return project_volume(volume, camera, mode="drr", n_samples=int(n_samples))
+    n = check_static_int("volume_drr", "n_samples", n_samples, lo=2)
+    return project_volume(volume, camera, mode="drr", n_samples=n)
 
 
 @register(family="tomography", takes=(Volume, Camera), gives=Image, differentiable=False, refs=_VOL_REFS)
@@ -392,6 +391,5 @@ def volume_mip(volume: Volume, camera: Camera, /, *, n_samples: int = 256) -> Im
         >>> float(fsjax.ops.volume_mip(vol, cam, n_samples=5).data[5, 5])  # samples at z = -2..2
         3.0
     """
-    if int(n_samples) < 2:
-        raise ValueError(f"volume_mip(n_samples=...): must be >= 2, got {n_samples}")
-    return project_volume(volume, camera, mode="mip", n_samples=int(n_samples))
+    n = check_static_int("volume_mip", "n_samples", n_samples, lo=2)
+    return project_volume(volume, camera, mode="mip", n_samples=n)
