@@ -307,7 +307,7 @@ def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "")
     L.append("| figure | value |\n|---|---|")
     L.append(f"| chains run | {n} (seed {run.seed}, length 1-{run.max_length}, mean {sum(lens) / max(1, n):.2f}) |")
     L.append(f"| outcomes | {status.get('ok', 0)} ok, {status.get('refused', 0)} refused by a clear error, "
-             f"{status.get('failed', 0)} failed |")
+             f"{status.get('failed', 0)} failed, {status.get('error', 0)} fuzzer errors |")
     L.append(f"| stages executed eagerly | {stages_run} |")
     L.append(f"| wall time | {run.seconds:.0f} s running + {run.minimise_seconds:.0f} s minimising |")
     L.append(f"| ops executed at least once | {executed} of {len(cov)} ({100 * executed / max(1, len(cov)):.1f} %) |")

@@ -38,7 +38,7 @@ _FLAGS_EXPLAIN = ("converged", "found")
 
 @dataclasses.dataclass
 class Outcome:
-    status: str                     # "ok" | "refused" | "failed"
+    status: str                     # "ok" | "refused" | "failed" | "error" (the fuzzer's own trouble)
     cls: str | None = None
     signature: str | None = None
     stage: int | None = None        # 0-based stage blamed (None: the chain as a whole)
@@ -336,6 +336,9 @@ class Runner:
             out.status = "failed"
             out.cls, out.stage, out.op, out.mode, out.message = f.cls, f.stage, f.op, f.mode, f.message
             out.signature = f"{f.cls} {f.op or 'chain'} [{f.mode}] {_norm(f.detail)}"
+        except Exception as e:  # noqa: BLE001 - the fuzzer's own trouble (an input it cannot build)
+            out.status = "error"
+            out.message = _first_line(e)
         out.seconds = time.perf_counter() - t0
         return out
 
