@@ -137,7 +137,7 @@ def _default_specs():
 def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequence[Any] | None = None,
          minimise_failures: bool = True, grad: bool = True, vmap: bool = True,
          time_budget_s: float | None = None, progress: Callable[[str], None] | None = None,
-         max_minimise_trials: int = 12, journal: str | os.PathLike | None = None) -> FuzzRun:
+         max_minimise_trials: int = 12, minimise_budget_s: float | None = None, journal: str | os.PathLike | None = None) -> FuzzRun:
     """Generate and run ``n_chains`` random typed chains of length ``1..max_length``.
 
     Args:
@@ -145,6 +145,8 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
       minimise_failures: shrink the first chain of every signature (:func:`minimise`).
       time_budget_s: stop generating new chains after this many seconds (recorded).
       progress: called with a one-line status now and then (e.g. ``print``).
+      minimise_budget_s: stop minimising after this many seconds (later signatures keep
+        their first chain unminimised; recorded).
       journal: a file to which every chain and its outcome is appended as one JSON line as
         it finishes (a long run can be read while it goes).
     """
@@ -173,6 +175,10 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
     if minimise_failures:
         t1 = time.perf_counter()
         for sig, items in run.signatures().items():
+            if minimise_budget_s is not None and time.perf_counter() - t1 > minimise_budget_s:
+                run.stopped_early += (("; " if run.stopped_early else "") +
+                                      f"minimising stopped after {minimise_budget_s:.0f} s")
+                break
             c, o = items[0]
             run.minimised[sig] = minimise(runner, c, o, max_trials=max_minimise_trials)
         run.minimise_seconds = time.perf_counter() - t1
@@ -387,7 +393,8 @@ def cli_main(args) -> int:
     journal = Path(args.out) / "chains.jsonl"
     journal.write_text("")
     run = fuzz(args.chains, args.length, args.seed, time_budget_s=args.minutes * 60 if args.minutes else None,
-               progress=lambda s: print(s, flush=True), grad=not args.no_grad, journal=journal)
+               progress=lambda s: print(s, flush=True), grad=not args.no_grad, journal=journal,
+               minimise_budget_s=max(120.0, 0.15 * 60 * args.minutes) if args.minutes else None)
     path = write_report(run, args.out, command=cmd)
     cc = {k: v for k, v in run.class_counts().items() if v}
     print(f"fsjax fuzz: {len(run.results)} chains in {run.seconds:.0f} s; ops executed "
