@@ -158,3 +158,25 @@ def test_generated_chains_type_correct_and_report(planted, tmp_path):
     for line in lines:
         assert fz.Chain.from_json(json.loads(line)["chain"]).stages
 
+
+# ---------------------------------------------------------------------------
+# the bounded fuzz CI runs: a fixed seed over the whole registry
+# ---------------------------------------------------------------------------
+
+BOUNDED_CHAINS = 5
+BOUNDED_LENGTH = 3
+BOUNDED_SEED = 2026
+
+
+@pytest.mark.slow
+def test_bounded_fuzz_whole_registry():
+    """A fixed-seed fuzz over every registered op fails on any blocking class.
+
+    Sized for the suite (a few chains; the full run is docs/fuzz.md): each failure's
+    replayable chain is in the assertion message.
+    """
+    run = fz.fuzz(BOUNDED_CHAINS, BOUNDED_LENGTH, seed=BOUNDED_SEED, minimise_failures=False)
+    assert len(run.results) == BOUNDED_CHAINS
+    assert sum(len(o.executed) for _, o in run.results) >= BOUNDED_CHAINS  # it did run ops
+    bad = [f"{o.signature}\n  {json.dumps(c.to_json())}" for c, o in run.failures if o.cls in fz.BLOCKING]
+    assert not bad, "\n".join(bad)
