@@ -20,10 +20,10 @@ import jax
 if "--x64" in sys.argv:
     jax.config.update("jax_enable_x64", True)
 
+import importlib  # noqa: E402
+
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-
-import importlib  # noqa: E402
 
 icp_mod = importlib.import_module("fsjax.fit.icp")
 from fsjax.fit import rotation_from_axis_angle  # noqa: E402
@@ -67,7 +67,8 @@ def main():
 
 def stages(src, tgt, tv):
     """(name, function, args) of each stage of one point-to-plane / point-to-point iteration."""
-    from fsjax.fit.icp import _estimate_normals as estimate_normals, _knn as knn
+    from fsjax.fit.icp import _estimate_normals as estimate_normals
+    from fsjax.ops import knn
 
     n = src.shape[0]
     w = jnp.ones(n, src.dtype)

@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._checks import check_positive
 from ..types.results import FitResult, Legacy, deprecated_name, renamed
 from .rigid import so3_exp
 
@@ -114,7 +115,7 @@ def _rho(loss: str, s2, scale):
         return jnp.where(small, s2, 2.0 * scale * jnp.sqrt(ss) - c2), jnp.where(small, 1.0, scale / jnp.sqrt(ss))
     if loss == "cauchy":
         return c2 * jnp.log1p(s2 / c2), 1.0 / (1.0 + s2 / c2)
-    raise ValueError(f"bundle_adjust(loss=...): expected 'linear', 'huber' or 'cauchy', got {loss!r}")
+    raise ValueError(f"bundle_adjust: argument 'loss' must be one of 'linear', 'huber', 'cauchy'; got {loss!r}")
 
 
 class _Problem(eqx.Module):
@@ -341,15 +342,15 @@ def bundle_adjust(K, rotvecs, translations, points, cam_idx, pt_idx, uv, *, loss
     pi = jnp.asarray(pt_idx, jnp.int32)
     for name, a, tail in (("rotvecs", w0, (3,)), ("translations", t0, (3,)), ("points", X0, (3,)), ("uv", uv, (2,))):
         if a.ndim != 2 or a.shape[1:] != tail:
-            raise ValueError(f"{fn}({name}=...): expected shape (n, {tail[0]}), got {a.shape}")
+            raise ValueError(f"{fn}: argument {name!r} must have shape (n, {tail[0]}), got {tuple(a.shape)}")
     n, m = w0.shape[0], X0.shape[0]
     if t0.shape[0] != n:
-        raise ValueError(f"{fn}(translations=...): {t0.shape[0]} poses for {n} rotation vectors")
+        raise ValueError(f"{fn}: argument 'translations' must hold one pose per rotation vector ({n}), got {t0.shape[0]}")
     if not (ci.shape == pi.shape == uv.shape[:1]):
-        raise ValueError(f"{fn}(cam_idx, pt_idx, uv): lengths differ: {ci.shape}, {pi.shape}, {uv.shape[:1]}")
+        raise ValueError(f"{fn}: arguments 'cam_idx', 'pt_idx', 'uv' must have equal lengths, got {ci.shape}, "
+                         f"{pi.shape}, {uv.shape[:1]}")
     _rho(loss, jnp.zeros(()), 1.0)  # validates the name
-    if not loss_scale > 0:
-        raise ValueError(f"{fn}(loss_scale=...): must be > 0, got {loss_scale}")
+    check_positive(fn, "loss_scale", loss_scale)
     bad = n < 2
     concrete = not any(isinstance(a, jax.core.Tracer) for a in (ci, pi, uv, w0, t0, X0))
     if concrete:

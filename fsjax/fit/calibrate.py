@@ -115,7 +115,7 @@ def homography_dlt(src_xy, dst_uv) -> np.ndarray:
     s = np.asarray(src_xy, np.float64)
     d = np.asarray(dst_uv, np.float64)
     if s.shape[0] < 4 or s.shape != d.shape or s.shape[1] != 2:
-        raise ValueError(f"homography_dlt: need (N >= 4, 2) point pairs, got {s.shape} and {d.shape}")
+        raise ValueError(f"homography_dlt: arguments 'src', 'dst' must be (N >= 4, 2) point pairs, got {s.shape} and {d.shape}")
     Ts, Td = _norm_T(s), _norm_T(d)
     sh = np.c_[s, np.ones(len(s))] @ Ts.T
     dh = np.c_[d, np.ones(len(d))] @ Td.T
@@ -166,7 +166,8 @@ def zhang_init(board_xy, image_uv, image_size) -> tuple[np.ndarray, np.ndarray, 
     v0 = (B12 * B13 - B11 * B23) / den
     lam = B33 - (B13 ** 2 + v0 * (B12 * B13 - B11 * B23)) / B11
     if not (lam / B11 > 0 and lam * B11 / den > 0):
-        raise ValueError("zhang_init: the homographies do not determine the intrinsics (degenerate views)")
+        raise ValueError("zhang_init: argument 'image_uv' must hold views that determine the intrinsics; the "
+                         "homographies are degenerate")
     al = np.sqrt(lam / B11)
     be = np.sqrt(lam * B11 / den)
     u0 = -B13 * al ** 2 / lam
@@ -304,15 +305,16 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
     board = np.asarray(board_xyz, np.float64)
     uv = np.asarray(image_uv, np.float64)
     if board.ndim != 2 or board.shape[1] != 3:
-        raise ValueError(f"calibrate_camera(board_xyz): expected (P, 3), got {board.shape}")
+        raise ValueError(f"calibrate_camera: argument 'board_xyz' must have shape (P, 3), got {board.shape}")
     if uv.ndim != 3 or uv.shape[1:] != (board.shape[0], 2):
-        raise ValueError(f"calibrate_camera(image_uv): expected (N, {board.shape[0]}, 2), got {uv.shape}")
+        raise ValueError(f"calibrate_camera: argument 'image_uv' must have shape (N, {board.shape[0]}, 2), got {uv.shape}")
     if uv.shape[0] < 2:
-        raise ValueError(f"calibrate_camera(image_uv): need at least 2 views, got {uv.shape[0]}")
+        raise ValueError(f"calibrate_camera: argument 'image_uv' must hold at least 2 views, got {uv.shape[0]}")
     if not np.allclose(board[:, 2], 0.0):
-        raise ValueError("calibrate_camera(board_xyz): the board must be planar with z = 0")
+        raise ValueError("calibrate_camera: argument 'board_xyz' must be planar with z = 0")
     if not np.all(np.isfinite(uv)):
-        raise ValueError("calibrate_camera(image_uv): non-finite image points (drop views that failed)")
+        raise ValueError("calibrate_camera: argument 'image_uv' must be finite, got non-finite image points "
+                         "(drop views that failed)")
     width, height = int(image_size[0]), int(image_size[1])
     K0, rv0, tv0 = zhang_init(board[:, :2], uv, (width, height))
     n = uv.shape[0]

@@ -57,6 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._checks import check_positive, check_static_int
 from ..ops.measure2d._caliper import bilinear
 from ..types.results import FitResult, reason_code, reason_message, renamed
 
@@ -141,9 +142,8 @@ def saddle_response(img, *, sigma: float = 1.5):
     """
     x = jnp.asarray(img, dtype=jnp.result_type(float))
     if x.ndim != 2:
-        raise ValueError(f"saddle_response(img): expected a 2-D image, got shape {x.shape}")
-    if not float(sigma) > 0:
-        raise ValueError(f"saddle_response(sigma=...): must be > 0, got {sigma}")
+        raise ValueError(f"saddle_response: argument 'img' must be a 2-D image, got shape {x.shape}")
+    check_positive("saddle_response", "sigma", sigma)
     return _saddle_jit(x, float(sigma))
 
 
@@ -235,9 +235,8 @@ def refine_corners(img, corners_uv, *, win: int = 5, max_iter: int = 50, tol: fl
     """
     x = jnp.asarray(img, dtype=jnp.result_type(float))
     if x.ndim != 2:
-        raise ValueError(f"refine_corners(img): expected a 2-D image, got shape {x.shape}")
-    if int(win) < 2:
-        raise ValueError(f"refine_corners(win=...): must be an int >= 2, got {win}")
+        raise ValueError(f"refine_corners: argument 'img' must be a 2-D image, got shape {x.shape}")
+    win = check_static_int("refine_corners", "win", win, lo=2)
     q0 = jnp.asarray(corners_uv, dtype=x.dtype).reshape(-1, 2)
     return _refine_jit(x, q0, int(win), int(max_iter), jnp.asarray(tol, x.dtype))
 
@@ -445,10 +444,10 @@ def find_chessboard(img, pattern=(9, 6), *, sigma: float = 2.0, nms: int = 4, re
     """
     nx, ny = int(pattern[0]), int(pattern[1])
     if nx < 2 or ny < 2:
-        raise ValueError(f"find_chessboard(pattern=...): need at least 2 x 2 inner corners, got {pattern}")
+        raise ValueError(f"find_chessboard: argument 'pattern' must have at least 2 x 2 inner corners, got {pattern}")
     a = np.asarray(img)
     if a.ndim != 2:
-        raise ValueError(f"find_chessboard(img): expected a 2-D greyscale image, got shape {a.shape}")
+        raise ValueError(f"find_chessboard: argument 'img' must be a 2-D greyscale image, got shape {a.shape}")
     if a.dtype == np.uint8:
         a = a.astype(np.float64) / 255.0
     n = nx * ny

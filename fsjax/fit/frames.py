@@ -23,6 +23,7 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
+from .._checks import check_positive, check_static_int
 from ..types.results import renamed
 
 __all__ = ["FrameSelection", "select_frames_by_rotation", "quaternion_angle_deg"]
@@ -48,14 +49,15 @@ class FrameSelection(eqx.Module):
 def _normalised(quats, fn):
     q = np.asarray(quats, dtype=float)
     if q.ndim != 2 or q.shape[1] != 4:
-        raise ValueError(f"{fn}(quats=...): expected shape (N, 4) as (w, x, y, z), got {q.shape}")
+        raise ValueError(f"{fn}: argument 'quats' must have shape (N, 4) as (w, x, y, z), got {q.shape}")
     if not np.all(np.isfinite(q)):
         bad = np.flatnonzero(~np.all(np.isfinite(q), axis=1))
-        raise ValueError(f"{fn}(quats=...): non-finite quaternion at frame(s) {bad[:10].tolist()}")
+        raise ValueError(f"{fn}: argument 'quats' must be finite, got a non-finite quaternion at frame(s) "
+                         f"{bad[:10].tolist()}")
     n = np.linalg.norm(q, axis=1)
     if np.any(n == 0):
         bad = np.flatnonzero(n == 0)
-        raise ValueError(f"{fn}(quats=...): zero-length quaternion at frame(s) {bad[:10].tolist()}; "
+        raise ValueError(f"{fn}: argument 'quats' must be unit quaternions, got a zero-length quaternion at frame(s) {bad[:10].tolist()}; "
                          "it is not a rotation")
     return q / n[:, None]
 
@@ -107,15 +109,13 @@ def select_frames_by_rotation(quats, *, threshold_deg: float = 10.0, min_gap: in
     q = _normalised(quats, fn)
     n = q.shape[0]
     if n < 2:
-        raise ValueError(f"{fn}(quats=...): need at least 2 frames, got {n}")
-    if not float(threshold_deg) > 0:
-        raise ValueError(f"{fn}(threshold_deg=...): must be > 0, got {threshold_deg}")
-    if int(min_gap) != min_gap or min_gap < 1:
-        raise ValueError(f"{fn}(min_gap=...): must be an int >= 1, got {min_gap}")
-    if max_gap is not None and (int(max_gap) != max_gap or max_gap < min_gap):
-        raise ValueError(f"{fn}(max_gap=...): must be an int >= min_gap={min_gap}, got {max_gap}")
+        raise ValueError(f"{fn}: argument 'quats' must hold at least 2 frames, got {n}")
+    check_positive(fn, "threshold_deg", threshold_deg)
+    min_gap = check_static_int(fn, "min_gap", min_gap, lo=1)
+    if max_gap is not None:
+        max_gap = check_static_int(fn, "max_gap", max_gap, lo=min_gap)
     if np.all(quaternion_angle_deg(q[:1], q) <= identical_tol_deg):
-        raise ValueError(f"{fn}(quats=...): all {n} quaternions are the same rotation; the orientation "
+        raise ValueError(f"{fn}: argument 'quats' must change orientation, got {n} quaternions of the same rotation; the orientation "
                          "telemetry is probably stuck (refusing to select frames by rotation)")
     step = np.concatenate([[0.0], quaternion_angle_deg(q[:-1], q[1:])])
     keep = np.zeros(n, bool)

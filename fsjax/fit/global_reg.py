@@ -40,12 +40,12 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_positive, check_static_int
-from ..ops import estimate_normals
+from ..ops import estimate_normals, knn
 from ..ops.points._search import _BRUTE_LIMIT, build_index
 from ..types import Points
 from ..types.results import FitResult, WrappedFit
 from ._cloud import as_cloud
-from .icp import ICPResult, _knn, icp
+from .icp import ICPResult, icp
 from .rigid import NO_HYPOTHESIS, OK, TOO_FEW, _weighted_kabsch, kabsch_umeyama
 
 __all__ = ["fpfh", "match_descriptors", "CorrespondenceRansacResult", "ransac_registration", "GlobalResult",
@@ -95,7 +95,7 @@ def _fpfh_core(xyz, valid, normals, radius, *, capacity, normal_k):
         normals = normals * jnp.where(jnp.sum(normals * (xyz - c), -1) < 0, -1.0, 1.0)[:, None]
     nok = valid & jnp.all(jnp.isfinite(normals), -1)
     normals = jnp.where(nok[:, None], normals, 0.0)
-    idx, d2 = _knn(xyz, xyz, capacity + 1, ref_valid=nok)  # includes the point itself
+    idx, d2 = knn(xyz, xyz, capacity + 1, ref_valid=nok)  # includes the point itself
     idx, d2 = idx[:, 1:], d2[:, 1:]
     inr = (idx >= 0) & (d2 <= radius**2) & (d2 > 0)
     truncated = inr[:, -1]
@@ -157,11 +157,11 @@ def match_descriptors(desc_src, desc_tgt, valid_src=None, valid_tgt=None, *, mut
     ds, dt = jnp.asarray(desc_src), jnp.asarray(desc_tgt)
     vs = jnp.ones(ds.shape[0], bool) if valid_src is None else jnp.asarray(valid_src, bool)
     vt = jnp.ones(dt.shape[0], bool) if valid_tgt is None else jnp.asarray(valid_tgt, bool)
-    i_st, _ = _knn(dt, ds, 1, ref_valid=vt)
+    i_st, _ = knn(dt, ds, 1, ref_valid=vt)
     i_st = i_st[:, 0]
     ok = vs & (i_st >= 0)
     if mutual:
-        i_ts, _ = _knn(ds, dt, 1, ref_valid=vs)
+        i_ts, _ = knn(ds, dt, 1, ref_valid=vs)
         ok = ok & (i_ts[jnp.maximum(i_st, 0), 0] == jnp.arange(ds.shape[0]))
     return jnp.maximum(i_st, 0).astype(jnp.int32), ok
 
@@ -372,7 +372,7 @@ def _point_refit(coarse, xs, xt, distance, rounds):
     index = build_index(xt, k=4) if xs.shape[0] * xt.shape[0] > _BRUTE_LIMIT else None  # built once
     for _ in range(rounds):
         p = xs @ r.T + t
-        j, d2 = _knn(xt, p, 1, index=index)
+        j, d2 = knn(xt, p, 1, index=index)
         fit = kabsch_umeyama(xs, xt[jnp.maximum(j[:, 0], 0)], weights=(d2[:, 0] <= distance**2).astype(xs.dtype))
         r = jnp.where(fit.converged, fit.R, r)
         t = jnp.where(fit.converged, fit.t, t)

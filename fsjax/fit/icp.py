@@ -54,8 +54,8 @@ inside the compiled loop, and by the normals / covariances / spacing pass
 (:func:`fsjax.ops.build_index`, a sorted-cell grid with two coarser levels for the far queries of
 the first iterations; exact, equal to ``cKDTree``). Small problems (``N M <= 2**22``) use the
 same module's blocked brute force instead (same answers, cheaper to compile). No (N, M) array is
-formed anywhere. The public k-NN is :func:`fsjax.ops.knn`; the fits' private dispatcher
-(:func:`_knn`, any dimension, a reusable index) calls the same implementation.
+formed anywhere. The normals / covariances and the registration modules search with the one
+public k-NN, :func:`fsjax.ops.knn` (any dimension, grid or brute force, a reusable index).
 """
 
 from __future__ import annotations
@@ -69,12 +69,12 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_choice, check_range, check_static_int, is_concrete
+from ..ops import knn
 from ..ops.points._search import (
     _BRUTE_LIMIT,
     GridIndex,
     _batched,
     _brute_batch,
-    _brute_knn,
     _brute_queries,
     _brute_refs,
     build_index,
@@ -105,45 +105,13 @@ _METHODS = ("point_to_point", "point_to_plane", "gicp")
 # ---------------------------------------------------------------------------
 
 
-def _knn(ref_xyz, query_xyz, k: int, *, ref_valid=None, index: GridIndex | None = None):
-    """Exact k nearest neighbours of each query point among the valid reference points (fits only).
-
-    One implementation with :func:`fsjax.ops.knn`: 3-D points go through the sorted-cell grid
-    (:func:`fsjax.ops.build_index` / :func:`fsjax.ops.query_knn`, exact, equal to
-    ``cKDTree``), small problems and other dimensions (33-D FPFH descriptors) through the same
-    module's blocked brute force (memory O(block), never an (N, M) matrix; for D > 4 the
-    distances use the ``|a|^2 - 2 a.b + |b|^2`` expansion, clamped at 0).
-
-    Args:
-        ref_xyz: ``(N, D)`` reference points.
-        query_xyz: ``(M, D)`` query points.
-        k: number of neighbours (static int, ``1 <= k``; ``k <= 64`` on the grid).
-        ref_valid: ``(N,)`` mask of usable reference points.
-        index: an index of ``ref_xyz`` built once by :func:`fsjax.ops.build_index` (reused).
-
-    Returns:
-        ``idx`` int32 ``(M, k)`` (ascending distance, -1 when fewer than k valid references) and
-        ``dist2`` ``(M, k)`` squared distances (``inf`` where missing).
-    """
-    ref = jnp.asarray(ref_xyz)
-    qry = jnp.asarray(query_xyz)
-    dtype = jnp.result_type(ref.dtype, qry.dtype, jnp.float32)
-    ref, qry = ref.astype(dtype), qry.astype(dtype)
-    n, d = ref.shape
-    m = qry.shape[0]
-    k = int(k)
-    rv = jnp.ones(n, bool) if ref_valid is None else jnp.asarray(ref_valid, bool)
-    if n == 0 or m == 0:
-        return jnp.full((m, k), -1, jnp.int32), jnp.full((m, k), jnp.inf, dtype)
-    if d == 3 and k <= 64 and (index is not None or n * m > _BRUTE_LIMIT):
-        return query_knn(build_index(ref, rv, k=k) if index is None else index, qry, k)
-    return _brute_knn(ref, rv, qry, k)
-
-
 def _neighbour_cov(xyz, valid, k: int, index=None):
     """Covariance (3, 3) of each point's k nearest valid neighbours (incl. itself) and the count used."""
-    idx, _ = _knn(xyz, xyz, k, ref_valid=valid, index=index)
-    return _cov_from_idx(xyz, idx)
+    valid = valid & jnp.all(jnp.isfinite(xyz), -1)
+    x0 = jnp.where(valid[:, None], xyz, 0.0)
+    idx, _ = knn(x0, x0, k, ref_valid=valid, index=index)
+    cov, cnt = _cov_from_idx(x0, idx)
+    return jnp.where(valid[:, None, None], cov, jnp.nan), cnt
 
 
 def _gicp_cov(cov, eps: float = 1e-3):
@@ -673,7 +641,7 @@ def _bunny_points(n: int, seed: int = 0) -> np.ndarray:
 def __getattr__(name):
     if name == "knn":
         deprecated_name("fsjax.fit.knn", "fsjax.ops.knn")
-        return _knn
+        return knn
     if name == "estimate_normals":
         deprecated_name("fsjax.fit.estimate_normals", "fsjax.ops.estimate_normals (takes Points; pass k)")
         return _estimate_normals

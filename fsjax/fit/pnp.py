@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from .._checks import check_positive, check_static_int
 from ..render.camera import project
 from ..types import Camera
 from ..types.results import FitResult, Legacy, deprecated_name, reason_code
@@ -169,10 +170,10 @@ def _coplanar(X, w):
 def _check(fn, X, uv):
     X = jnp.asarray(X)
     if X.ndim != 2 or X.shape[1] != 3:
-        raise ValueError(f"{fn}(X): expected (N, 3) world points, got {X.shape}")
+        raise ValueError(f"{fn}: argument 'X' must be (N, 3) world points, got {X.shape}")
     uv = jnp.asarray(uv, X.dtype)
     if uv.shape != (X.shape[0], 2):
-        raise ValueError(f"{fn}(uv): expected ({X.shape[0]}, 2) pixels, got {uv.shape}")
+        raise ValueError(f"{fn}: argument 'uv' must be ({X.shape[0]}, 2) pixels, got {uv.shape}")
     return X, uv
 
 
@@ -252,10 +253,8 @@ def solve_pnp_ransac(key, X, uv, K, dist=None, *, threshold_px: float = 2.0, n_h
         (30, True)
     """
     X, uv = _check("solve_pnp_ransac", X, uv)
-    if int(n_hypotheses) < 1:
-        raise ValueError(f"solve_pnp_ransac(n_hypotheses=...): must be >= 1, got {n_hypotheses}")
-    if not float(threshold_px) > 0:
-        raise ValueError(f"solve_pnp_ransac(threshold_px=...): must be > 0, got {threshold_px}")
+    check_static_int("solve_pnp_ransac", "n_hypotheses", n_hypotheses, lo=1)
+    check_positive("solve_pnp_ransac", "threshold_px", threshold_px)
     return _ransac(key, X, uv, jnp.asarray(K, X.dtype), None if dist is None else jnp.asarray(dist, X.dtype),
                    jnp.asarray(threshold_px, X.dtype), int(n_hypotheses), int(max_steps))
 

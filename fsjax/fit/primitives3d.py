@@ -107,10 +107,10 @@ def _canon(v):
     return jnp.where(s < 0, -v, v)
 
 
-def _prep(xyz, valid):
+def _prep(xyz, valid, fn: str = "fit"):
     xyz = jnp.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[-1] != 3:
-        raise ValueError(f"fit: points must have shape (N, 3), got {tuple(xyz.shape)}")
+        raise ValueError(f"{fn}: argument 'xyz' must have shape (N, 3), got {tuple(xyz.shape)}")
     v = jnp.ones(xyz.shape[0], bool) if valid is None else jnp.asarray(valid, bool)
     v = v & jnp.all(jnp.isfinite(xyz), axis=-1)
     return jnp.where(v[:, None], xyz, 0.0), v
@@ -174,7 +174,7 @@ def fit_plane(xyz, valid=None) -> Fit3D:
       >>> [round(float(v), 6) for v in f.params]
       [0.0, 0.0, 1.0, 2.0]
     """
-    x, v = _prep(xyz, valid)
+    x, v = _prep(xyz, valid, "fit_plane")
     c, ev, evec = _pca(x, v)
     n = _canon(evec[:, 0])
     ok = (jnp.sum(v) >= 3) & (ev[1] > 1e-12 * ev[2]) & (ev[2] > 0)
@@ -196,7 +196,7 @@ def fit_line3d(xyz, valid=None) -> Fit3D:
       >>> [round(float(v), 6) for v in f.params[3:]]
       [0.333333, 0.666667, 0.666667]
     """
-    x, v = _prep(xyz, valid)
+    x, v = _prep(xyz, valid, "fit_line3d")
     c, ev, evec = _pca(x, v)
     d = _canon(evec[:, 2])
     ok = (jnp.sum(v) >= 2) & (ev[2] > 0)
@@ -246,7 +246,7 @@ def fit_sphere(xyz, valid=None, *, max_steps: int = 100) -> Fit3D:
       >>> [round(float(v), 6) for v in fit_sphere(pts).params]
       [1.0, 0.0, 0.0, 2.0]
     """
-    x, v = _prep(xyz, valid)
+    x, v = _prep(xyz, valid, "fit_sphere")
     y0, ok = _sphere_alg(x, v)
     y0 = jnp.where(ok, y0, jnp.array([0.0, 0.0, 0.0, 1.0], x.dtype))
     y, conv, steps = _lm(_sphere_res, y0, (x, v.astype(x.dtype)), max_steps)
@@ -278,7 +278,7 @@ def fit_circle3d(xyz, valid=None, *, max_steps: int = 100) -> Fit3D:
       >>> [round(float(v), 6) + 0.0 for v in fit_circle3d(jnp.asarray(pts)).params]
       [1.0, 0.0, 3.0, 0.0, 0.0, 1.0, 2.0]
     """
-    x, v = _prep(xyz, valid)
+    x, v = _prep(xyz, valid, "fit_circle3d")
     c, ev, evec = _pca(x, v)
     n = _canon(evec[:, 0])
     e1, e2 = evec[:, 2], jnp.cross(n, evec[:, 2])
@@ -375,7 +375,7 @@ def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
     """
     from ..ops.points._cloud import knn
 
-    x, v = _prep(xyz, valid)
+    x, v = _prep(xyz, valid, "fit_cylinder")
     c, _, evec = _pca(x, v)
     xc = x - c
     idx, _ = knn(xc, xc, min(12, x.shape[0]), ref_valid=v)
@@ -419,7 +419,7 @@ def fit_quadric(xyz, valid=None) -> Fit3D:
       >>> round(float(fit_quadric(jnp.asarray(pts)).rms_len), 9)
       0.0
     """
-    x, v = _prep(xyz, valid)
+    x, v = _prep(xyz, valid, "fit_quadric")
     c, ev, evec = _pca(x, v)
     n, e1 = evec[:, 0], evec[:, 2]
     e2 = jnp.cross(n, e1)

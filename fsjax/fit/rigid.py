@@ -185,7 +185,7 @@ def rotation_from_axis_angle(axis, angle_deg) -> Float[Array, "*b 3 3"]:
     n = jnp.linalg.norm(axis, axis=-1, keepdims=True)
     try:
         if not bool(jnp.all(n > 0)):
-            raise ValueError("rotation_from_axis_angle(axis=...): zero-length axis")
+            raise ValueError("rotation_from_axis_angle: argument 'axis' must be non-zero, got a zero-length axis")
     except jax.errors.ConcretizationTypeError:
         pass
     return so3_exp(axis / n * jnp.radians(jnp.asarray(angle_deg, axis.dtype))[..., None])
@@ -288,11 +288,11 @@ def kabsch_umeyama(
     dtype = jnp.result_type(src.dtype, dst.dtype, jnp.float32)
     src, dst = src.astype(dtype), dst.astype(dtype)
     if src.ndim != 2 or src.shape[-1] != 3 or dst.shape != src.shape:
-        raise ValueError(f"kabsch_umeyama(src, dst): expected two (N, 3) arrays of equal shape, got {src.shape} "
+        raise ValueError(f"kabsch_umeyama: arguments 'src', 'dst' must be two (N, 3) arrays of equal shape, got {src.shape} "
                          f"and {dst.shape}")
     w = jnp.ones(src.shape[0], dtype) if weights is None else jnp.asarray(weights, dtype)
     if w.shape != src.shape[:1]:
-        raise ValueError(f"kabsch_umeyama(weights=...): expected shape {src.shape[:1]}, got {w.shape}")
+        raise ValueError(f"kabsch_umeyama: argument 'weights' must have shape {src.shape[:1]}, got {w.shape}")
     use = w > 0
     finite = jnp.all(jnp.where(use[:, None], jnp.isfinite(src) & jnp.isfinite(dst), True)) & jnp.all(jnp.isfinite(w))
     w = jnp.where(use & finite, w, 0.0)
@@ -394,7 +394,7 @@ def pca_canonical_pose(
     xyz = jnp.asarray(xyz)
     xyz = xyz.astype(jnp.result_type(xyz.dtype, jnp.float32))
     if xyz.ndim != 2 or xyz.shape[-1] != 3:
-        raise ValueError(f"pca_canonical_pose(xyz): expected an (N, 3) array, got {xyz.shape}")
+        raise ValueError(f"pca_canonical_pose: argument 'xyz' must be an (N, 3) array, got {xyz.shape}")
     m = jnp.ones(xyz.shape[0], bool) if valid is None else jnp.asarray(valid, bool)
     finite = jnp.all(jnp.where(m[:, None], jnp.isfinite(xyz), True))
     w = (m & finite).astype(xyz.dtype)

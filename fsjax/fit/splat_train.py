@@ -221,7 +221,7 @@ def init_from_mesh(key, data: MultiViewData, n_init: int, max_splats: int, *, dt
     scales from the mean spacing, opacity 0.1, colour of the sample."""
     pts, pcol = data.points
     if n_init > max_splats:
-        raise ValueError(f"init_from_mesh(n_init=...): {n_init} exceeds max_splats={max_splats}")
+        raise ValueError(f"init_from_mesh: argument 'n_init' must be <= max_splats ({max_splats}), got {n_init}")
     k1, k2 = jax.random.split(key)
     idx = np.asarray(jax.random.choice(k1, len(pts), (n_init,), replace=n_init > len(pts)))
     spacing = data.extent * np.sqrt(4 * np.pi / n_init) * 0.5
@@ -323,7 +323,7 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
         :class:`SplatTrainResult`.
     """
     if iterations < 1:
-        raise ValueError(f"train_splats(iterations=...): must be >= 1, got {iterations}")
+        raise ValueError(f"train_splats: argument 'iterations' must be >= 1, got {iterations}")
     W = data.cameras.width
     if grad_threshold is None:
         grad_threshold = 0.0002 / (0.5 * W)

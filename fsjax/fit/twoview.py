@@ -308,10 +308,10 @@ def relative_pose(key, uv1, uv2, K1, K2=None, *, dist1=None, dist2=None, thresho
     """
     uv1 = jnp.asarray(uv1)
     if uv1.ndim != 2 or uv1.shape[1] != 2:
-        raise ValueError(f"relative_pose(uv1): expected (N, 2), got {uv1.shape}")
+        raise ValueError(f"relative_pose: argument 'uv1' must have shape (N, 2), got {uv1.shape}")
     uv2 = jnp.asarray(uv2, uv1.dtype)
     if uv2.shape != uv1.shape:
-        raise ValueError(f"relative_pose(uv2): expected {uv1.shape}, got {uv2.shape}")
+        raise ValueError(f"relative_pose: argument 'uv2' must have shape {uv1.shape}, got {uv2.shape}")
     if int(n_hypotheses) < 1:
         raise ValueError(f"relative_pose: argument 'n_hypotheses' must be >= 1, got {n_hypotheses}")
     K1 = jnp.asarray(K1, uv1.dtype)

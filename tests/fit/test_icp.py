@@ -15,7 +15,7 @@ from fsjax.fit import (
     rotation_grid,
 )
 from fsjax.fit.icp import _bunny_points
-from fsjax.fit.icp import _knn as knn
+from fsjax.ops import knn
 from fsjax.tour.registration import measure_basin, measure_self_registration
 
 
@@ -30,6 +30,14 @@ def test_knn_matches_ckdtree():
     print(f"brute-force knn (k=8, 20 % invalid refs) vs cKDTree: index agreement {same:.4f}, "
           f"max |d - d_ref| {np.abs(np.sqrt(np.asarray(d2)) - dd).max():.1e}")
     assert same == 1.0 and np.allclose(np.sqrt(np.asarray(d2)), dd, atol=1e-12)
+    # the same fsjax.ops.knn on a reused index (3-D grid) and on 33-D descriptors (brute force)
+    index = fsjax.ops.build_index(jnp.asarray(ref), jnp.asarray(valid), k=8)
+    idx_i, d2_i = knn(jnp.asarray(ref), jnp.asarray(qry), 8, index=index)
+    assert np.array_equal(np.asarray(idx_i), np.asarray(idx)) and np.allclose(d2_i, d2, atol=1e-14)
+    desc = np.random.default_rng(0).uniform(size=(200, 33))
+    i33, d33 = knn(jnp.asarray(desc), jnp.asarray(desc[:40]), 3)
+    dd33, ii33 = cKDTree(desc).query(desc[:40], 3)
+    assert np.array_equal(np.asarray(i33), ii33) and np.allclose(np.asarray(d33), dd33**2, atol=1e-12)  # expansion
 
 
 def test_bunny_self_registration():

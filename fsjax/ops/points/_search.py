@@ -98,11 +98,16 @@ _BRUTE_LIMIT = 2 ** 22  # N * M at or below which method="auto" uses brute force
 # ---------------------------------------------------------------------------
 
 
-def _prepare(fn: str, ref_xyz: Any, query_xyz: Any, ref_valid: Any):
+def _prepare(fn: str, ref_xyz: Any, query_xyz: Any, ref_valid: Any, any_dim: bool = False):
     ref = jnp.asarray(ref_xyz)
     qry = jnp.asarray(query_xyz)
     for name, a in (("ref_xyz", ref), ("query_xyz", qry)):
-        if a.ndim != 2 or a.shape[-1] != 3:
+        if any_dim and a.ndim == 2 and a.shape[-1] >= 1 and a.shape[-1] == ref.shape[-1]:
+            pass
+        elif any_dim:
+            raise ValueError(f"{fn}: argument '{name}' must have shape (N, D) with the D of 'ref_xyz' "
+                             f"{tuple(ref.shape[1:])}, got {tuple(a.shape)}")
+        elif a.ndim != 2 or a.shape[-1] != 3:
             raise ValueError(f"{fn}: argument '{name}' must have shape (N, 3), got {tuple(a.shape)}")
         if not jnp.issubdtype(a.dtype, jnp.floating):
             raise TypeError(f"{fn}: argument '{name}' must be a float array, got {a.dtype}")
@@ -571,21 +576,26 @@ def query_radius(index: GridIndex, query_xyz: Any, radius: Any, capacity: int):
 # ---------------------------------------------------------------------------
 
 
-def knn(ref_xyz: Any, query_xyz: Any, k: int, *, ref_valid: Any = None, method: str = "auto"):
+def knn(ref_xyz: Any, query_xyz: Any, k: int, *, ref_valid: Any = None, method: str = "auto",
+        index: GridIndex | None = None):
     """Exact k-nearest neighbours of each query point among the reference points.
 
     For every query ``q`` the ``k`` valid reference points with the smallest
-    squared Euclidean distance ``|q - p|^2``, sorted ascending.
+    squared Euclidean distance ``|q - p|^2``, sorted ascending. Points of any
+    dimension ``D`` (e.g. 33-D FPFH descriptors) are searched by brute force;
+    3-D points by brute force or the sorted-cell grid.
 
     Args:
-      ref_xyz: ``(N, 3)`` reference points (float32 or float64).
-      query_xyz: ``(M, 3)`` query points (same unit).
-      k: number of neighbours, a static int in ``[1, 32]``. ``k`` may exceed the
+      ref_xyz: ``(N, D)`` reference points (float32 or float64).
+      query_xyz: ``(M, D)`` query points (same unit).
+      k: number of neighbours, a static int in ``[1, 64]``. ``k`` may exceed the
         number of valid reference points: the missing slots are filled.
       ref_valid: optional ``(N,)`` bool mask; invalid reference points are
         never returned (default: all valid).
-      method: ``"auto"`` (brute force when ``N * M <= 2**22``, else the grid),
-        ``"grid"`` or ``"brute"``; all three give the same exact answer.
+      method: ``"auto"`` (brute force when ``N * M <= 2**22`` or ``D != 3``, else
+        the grid), ``"grid"`` (3-D only) or ``"brute"``; all give the same exact answer.
+      index: a grid of ``ref_xyz`` built once by :func:`build_index` and reused
+        (3-D; ``ref_valid`` is then the index's own mask).
 
     Returns:
       ``(idx, dist2)``: ``idx`` ``(M, k)`` int32 indices into ``ref_xyz``, -1 for
@@ -604,17 +614,23 @@ def knn(ref_xyz: Any, query_xyz: Any, k: int, *, ref_valid: Any = None, method: 
       ([0, 1, 2], [0.01, 0.81, 4.01])
     """
     fn = "knn"
-    ref, qry, valid = _prepare(fn, ref_xyz, query_xyz, ref_valid)
+    ref, qry, valid = _prepare(fn, ref_xyz, query_xyz, ref_valid, any_dim=True)
     if isinstance(k, bool) or not isinstance(k, (int, np.integer)):
         raise TypeError(f"{fn}: argument 'k' must be a static int, got {type(k).__name__}")
     k = int(k)
-    if not 1 <= k <= 32:
-        raise ValueError(f"{fn}: argument 'k' must be in [1, 32], got {k}")
+    if not 1 <= k <= 64:
+        raise ValueError(f"{fn}: argument 'k' must be in [1, 64], got {k}")
     method = _check_method(fn, method)
+    three_d = ref.shape[1] == 3
+    if (method == "grid" or index is not None) and not three_d:
+        raise ValueError(f"{fn}: argument 'method' must be 'auto' or 'brute' for {ref.shape[1]}-D points "
+                         "(the grid is 3-D)")
     n, m = ref.shape[0], qry.shape[0]
     if m == 0 or n == 0:
         return (jnp.full((m, k), -1, jnp.int32), jnp.full((m, k), jnp.inf, qry.dtype))
-    brute = method == "brute" or (method == "auto" and n * m <= _BRUTE_LIMIT)
+    if index is not None:
+        return query_knn(index, qry, k)
+    brute = method == "brute" or not three_d or (method == "auto" and n * m <= _BRUTE_LIMIT)
     return _knn_jit(ref, valid, qry, k, brute)
 
 
