@@ -4,8 +4,9 @@ Op families live in private modules grouped by domain: :mod:`.image` (filters,
 morphology, thresholds, edges, frequency, colour, pixel-wise maps, geometry, distance,
 skeleton, binary, features), :mod:`.measure2d` (labels, segmentation, region
 measurement, contours, calipers, 2-D fits), :mod:`.matching` (correlation and shape
-matching), :mod:`.points` (point clouds, curvature, neighbour search, segmentation) and
-:mod:`.measure3d` (photometric stereo, structured light, tomography, camera, rendering).
+matching), :mod:`.points` (point clouds, curvature, neighbour search, segmentation),
+:mod:`.measure3d` (photometric stereo, structured light, tomography, camera, rendering) and
+:mod:`.volume` (3-D filters, morphology, labels, distance, projections of a ``Volume``).
 Each family module lists its public names in ``__all__`` (the one export list); the
 domain packages export nothing themselves. Importing this package registers every op.
 Shared op-only helpers are in :mod:`._common`; argument checks in :mod:`fsjax._checks`.
@@ -51,3 +52,4 @@ from .points._cloud import *  # noqa: F403
 from .points._curvature import *  # noqa: F403
 from .points._search import *  # noqa: F403
 from .points._segment import *  # noqa: F403
+from .volume._filters3d import *  # noqa: F403
