@@ -31,8 +31,8 @@ _NAMES = {
     **{n: ".registry" for n in ("IntKnob", "LinKnob", "LogKnob", "OpSpec", "UnknownOpError", "compiled_calls",
                                 "families", "get_op", "list_ops", "register")},
     **{n: ".types" for n in ("HSV", "Camera", "Color", "Contour", "Depth", "Edges1D", "Feature", "Fit",
-                             "Gaussians", "Image", "Lab", "Labels", "Match", "Mesh", "Points", "Region",
-                             "RegionProps", "Signal", "Sort", "Volume")},
+                             "Gaussians", "Image", "Lab", "Labels", "LabelVolume", "Match", "Mesh", "Points",
+                             "Region", "RegionProps", "Signal", "Sort", "Volume")},
 }
 
 __all__ = sorted(_NAMES) + list(_SUBMODULES)
@@ -102,6 +102,7 @@ if TYPE_CHECKING:  # static analysers see the eager imports
     from .types import Image as Image
     from .types import Lab as Lab
     from .types import Labels as Labels
+    from .types import LabelVolume as LabelVolume
     from .types import Match as Match
     from .types import Mesh as Mesh
     from .types import Points as Points

@@ -52,4 +52,7 @@ from .points._cloud import *  # noqa: F403
 from .points._curvature import *  # noqa: F403
 from .points._search import *  # noqa: F403
 from .points._segment import *  # noqa: F403
+from .volume._distance3d import *  # noqa: F403
 from .volume._filters3d import *  # noqa: F403
+from .volume._label3d import *  # noqa: F403
+from .volume._project3d import *  # noqa: F403

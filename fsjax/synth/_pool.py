@@ -25,6 +25,7 @@ from ..types import (
     Image,
     Lab,
     Labels,
+    LabelVolume,
     LightStack,
     Mesh,
     NormalMap,
@@ -230,6 +231,15 @@ def _volume(variant, size):
     c = (2.5, 5.5 + variant, 7.5 - variant)
     r2 = ((z - c[0]) * 2.0) ** 2 + (y - c[1]) ** 2 + (x - c[2]) ** 2
     return Volume(jnp.asarray(0.05 + 0.9 * np.exp(-r2 / 18.0)), spacing=(2.0, 1.0, 1.0))
+
+
+@register_pool(LabelVolume)
+def _label_volume(variant, size):
+    """Two boxes labelled 1 and 2 in a ``(6, 12, 16)`` volume, spacing (2, 1, 1) mm."""
+    lab = np.zeros((6, 12, 16), np.int32)
+    lab[1:4, 2:6, 2 + variant:7] = 1
+    lab[2:6, 7:11, 9:15 - variant] = 2
+    return LabelVolume(jnp.asarray(lab), count=2, spacing=(2.0, 1.0, 1.0))
 
 
 @register_pool(Camera)

@@ -13,7 +13,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._base import Sort, _as_array, _from_uint, is_concrete
 
-__all__ = ["Image", "Color", "HSV", "Lab", "Region", "Labels", "Signal", "Volume", "LightStack", "NormalMap",
+__all__ = ["Image", "Color", "HSV", "Lab", "Region", "Labels", "Signal", "Volume", "LabelVolume", "LightStack", "NormalMap",
            "FringeStack", "GrayStack"]
 
 
@@ -198,6 +198,41 @@ class Volume(Sort):
         sp = tuple(float(s) for s in spacing)
         if len(sp) != 3 or not all(s > 0 for s in sp):
             raise ValueError(f"Volume(spacing=...): expected three positive numbers (dz, dy, dx), got {spacing}")
+        self.spacing = sp
+        self.unit = unit
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.data.shape[:-3])
+
+
+class LabelVolume(Sort):
+    """Label volume, shape ``(*batch, D, H, W)`` int32; 0 = background, ``1..count``.
+
+    ``count`` and ``truncated`` mean what they mean for :class:`Labels`; ``spacing``
+    ``(dz, dy, dx)`` in ``unit`` is carried over from the ``Volume`` that was labelled.
+    """
+
+    _array_field = "data"
+
+    data: Int[Array, "*batch D H W"]
+    count: Int[Array, "*batch"]
+    truncated: Bool[Array, "*batch"]
+    spacing: tuple[float, float, float] = eqx.field(static=True, default=(1.0, 1.0, 1.0))
+    unit: str = eqx.field(static=True, default="mm")
+
+    def __init__(self, data: Any, count: Any = None, truncated: Any = False,
+                 spacing: tuple[float, float, float] = (1.0, 1.0, 1.0), unit: str = "mm"):
+        self.data = _as_array(data, sort="LabelVolume", field="data", kind="int", min_ndim=3, spatial=3)
+        if count is None:
+            if not is_concrete(self.data):
+                raise ValueError("LabelVolume(count=None) needs a concrete label array; pass count under jit")
+            count = np.max(np.asarray(self.data), axis=(-3, -2, -1), initial=0)
+        self.count = jnp.asarray(count, dtype=jnp.int32)
+        self.truncated = jnp.asarray(truncated, dtype=bool)
+        sp = tuple(float(s) for s in spacing)
+        if len(sp) != 3 or not all(s > 0 for s in sp):
+            raise ValueError(f"LabelVolume(spacing=...): expected three positive numbers (dz, dy, dx), got {spacing}")
         self.spacing = sp
         self.unit = unit
 

@@ -1,0 +1,151 @@
+"""label3d / regionprops3d / distance_transform3d / project3d: conformance with
+scipy.ndimage and skimage.measure on small random and structured volumes, capacity
+overflow, float32, jit/vmap, bad input. One volume shape throughout."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.ndimage as ndi
+from skimage import measure
+
+from fsjax import LabelVolume, Volume
+from fsjax.ops import distance_transform3d, label3d, project3d, regionprops3d
+
+SHAPE = (16, 18, 20)
+SP = (2.0, 1.0, 0.5)
+STRUCT = {6: ndi.generate_binary_structure(3, 1), 18: ndi.generate_binary_structure(3, 2),
+          26: np.ones((3, 3, 3), bool)}
+
+
+def _masks():
+    rng = np.random.default_rng(3)
+    smooth = ndi.gaussian_filter(rng.random(SHAPE), 1.0) > 0.5
+    speckle = rng.random(SHAPE) < 0.25          # many small components, diagonal contacts
+    z, y, x = np.mgrid[0:SHAPE[0], 0:SHAPE[1], 0:SHAPE[2]]
+    # a helix-like tube: one long thin component that needs many union-find rounds
+    t = np.linspace(0, 4 * np.pi, 400)
+    tube = np.zeros(SHAPE, bool)
+    tube[np.clip((t / (4 * np.pi) * 15).astype(int), 0, 15), (9 + 7 * np.sin(t)).astype(int),
+         (10 + 8 * np.cos(t)).astype(int)] = True
+    shell = ((z - 8) ** 2 + (y - 9) ** 2 + (x - 10) ** 2 <= 49) & ((z - 8) ** 2 + (y - 9) ** 2 + (x - 10) ** 2 >= 25)
+    return {"smooth": smooth, "speckle": speckle, "tube": tube, "shell": shell | speckle & (z < 3)}
+
+
+MASKS = _masks()
+
+
+@pytest.mark.parametrize("name", list(MASKS))
+def test_label_equals_scipy(name):
+    m = MASKS[name]
+    v = Volume(jnp.asarray(m, jnp.float64))
+    for conn in (6, 18, 26):
+        lab = label3d(v, connectivity=conn)
+        ref, n = ndi.label(m, STRUCT[conn])
+        assert int(lab.count) == n and not bool(lab.truncated), (name, conn)
+        assert np.array_equal(np.asarray(lab.data), ref), (name, conn)
+    # skimage numbers the same way for the full connectivity
+    sk = measure.label(m, connectivity=3)
+    assert np.array_equal(np.asarray(label3d(v).data), sk)
+
+
+def test_label_capacity_fails_closed():
+    m = MASKS["speckle"]
+    ref, n = ndi.label(m, STRUCT[6])
+    assert n > 20
+    lab = label3d(Volume(jnp.asarray(m, jnp.float64)), connectivity=6, capacity=20)
+    assert int(lab.count) == 20 and bool(lab.truncated)
+    assert np.array_equal(np.asarray(lab.data), np.where(ref <= 20, ref, 0))
+    props = regionprops3d(lab, capacity=32)
+    assert bool(props.truncated)  # the labelling lost components: the table says so
+
+
+def test_label_float32_level_vmap():
+    m1, m2 = MASKS["smooth"], MASKS["tube"]
+    prob = jnp.asarray(np.stack([m1 * 0.8 + 0.1, m2 * 0.8 + 0.1]), jnp.float32)
+    out = jax.jit(jax.vmap(lambda d: label3d(Volume(d, spacing=SP), level=0.5).data))(prob)
+    for i, m in enumerate((m1, m2)):
+        assert np.array_equal(np.asarray(out[i]), ndi.label(m, STRUCT[26])[0])
+
+
+def test_regionprops_equal_skimage():
+    ref, n = ndi.label(MASKS["speckle"], STRUCT[6])
+    assert n > 3
+    p = regionprops3d(LabelVolume(jnp.asarray(ref, jnp.int32), spacing=SP), capacity=n + 3)
+    rp = measure.regionprops(ref)
+    assert [bool(v) for v in p.valid] == [True] * n + [False] * 3
+    assert not bool(p.truncated)
+    for i, r in enumerate(rp):
+        assert float(p["voxels"][i]) == r.area
+        assert abs(float(p["volume"][i]) - r.area * np.prod(SP)) < 1e-12
+        for k, ax in enumerate("zyx"):
+            assert abs(float(p[f"centroid_{ax}"][i]) - r.centroid[k] * SP[k]) < 1e-12
+        assert tuple(int(p[c][i]) for c in ("bbox_z0", "bbox_y0", "bbox_x0", "bbox_z1", "bbox_y1", "bbox_x1")) \
+            == r.bbox
+    small = regionprops3d(LabelVolume(jnp.asarray(ref, jnp.int32), spacing=SP), capacity=2)
+    assert bool(small.truncated)
+
+
+@pytest.mark.parametrize("sampling", [(1.0, 1.0, 1.0), SP])
+def test_edt_equals_scipy(sampling):
+    for name in ("smooth", "speckle", "shell"):
+        fg = ~MASKS[name] if name == "speckle" else MASKS[name]  # speckle inverted: mostly foreground
+        d = distance_transform3d(Volume(jnp.asarray(fg, jnp.float64), spacing=sampling))
+        ref = ndi.distance_transform_edt(fg, sampling=sampling)
+        err = float(np.abs(np.asarray(d.data) - ref).max())
+        if sampling == (1.0, 1.0, 1.0):
+            assert err == 0.0, name
+        else:
+            assert err < 1e-12, name
+
+
+def test_edt_single_background_voxel_float32_and_no_background():
+    fg = np.ones(SHAPE, bool)
+    fg[3, 15, 2] = False
+    d = distance_transform3d(Volume(jnp.asarray(fg, jnp.float32), spacing=SP))
+    assert d.data.dtype == jnp.float32
+    ref = ndi.distance_transform_edt(fg, sampling=SP)
+    assert float(np.abs(np.asarray(d.data, np.float64) - ref).max()) < 1e-5
+    allfg = distance_transform3d(Volume(jnp.ones((4, 5, 6))))
+    assert bool(jnp.all(jnp.isinf(allfg.data)))
+
+
+def test_edt_vmap():
+    fgs = jnp.asarray(np.stack([MASKS["smooth"], MASKS["shell"]]), jnp.float64)
+    out = jax.jit(jax.vmap(lambda d: distance_transform3d(Volume(d, spacing=SP)).data))(fgs)
+    for i, name in enumerate(("smooth", "shell")):
+        assert float(np.abs(np.asarray(out[i]) - ndi.distance_transform_edt(MASKS[name], sampling=SP)).max()) < 1e-12
+
+
+def test_projections():
+    rng = np.random.default_rng(5)
+    x = rng.random(SHAPE)
+    v = Volume(jnp.asarray(x), spacing=SP)
+    for axis in (0, 1, 2):
+        assert np.array_equal(np.asarray(project3d(v, axis=axis).data), x.max(axis))
+        assert np.array_equal(np.asarray(project3d(v, axis=axis, kind="min").data), x.min(axis))
+        assert float(np.abs(np.asarray(project3d(v, axis=axis, kind="mean").data) - x.mean(axis)).max()) < 1e-14
+        s = project3d(v, axis=axis, kind="sum").data
+        assert float(np.abs(np.asarray(s) - x.sum(axis) * SP[axis]).max()) < 1e-12
+    b = jax.jit(jax.vmap(lambda d: project3d(Volume(d), axis=1).data))(jnp.stack([jnp.asarray(x)] * 2))
+    assert b.shape == (2, SHAPE[0], SHAPE[2])
+    x32 = project3d(Volume(jnp.asarray(x, jnp.float32)), kind="mean").data
+    assert x32.dtype == jnp.float32 and float(np.abs(np.asarray(x32) - x.mean(0)).max()) < 1e-6
+
+
+def test_bad_input_names_op_and_argument():
+    v = Volume(jnp.zeros((4, 4, 4)))
+    with pytest.raises(ValueError, match="label3d: argument 'connectivity'"):
+        label3d(v, connectivity=8)
+    with pytest.raises(ValueError, match="label3d: argument 'capacity'"):
+        label3d(v, capacity=0)
+    with pytest.raises(ValueError, match="project3d: argument 'axis'"):
+        project3d(v, axis=3)
+    with pytest.raises(ValueError, match="project3d: argument 'kind'"):
+        project3d(v, kind="median")
+    with pytest.raises(ValueError, match="distance_transform3d: argument 'level'"):
+        distance_transform3d(v, level=float("nan"))
+    with pytest.raises(TypeError, match="regionprops3d"):
+        regionprops3d(v)
