@@ -43,7 +43,7 @@ def main() -> None:
         f"{secs:.0f} s on this machine). Ops: `estimate_normals`, `voxel_downsample`, "
         "`statistical_outlier_removal`, `radius_outlier_removal`, `farthest_point_sample`, `curvature`, "
         "`euclidean_cluster`, `remove_ground` (see `docs/ops/`). Fits: `fsjax.fit.ransac` "
-        "(plane, line, sphere, cylinder), `fsjax.fit.fit_plane/line/sphere/circle3d/cylinder/quadric`, "
+        "(plane, line, sphere, cylinder), `fsjax.fit.fit_plane/line3d/sphere/circle3d/cylinder/quadric`, "
         "distances, angles and intersections, `fsjax.fit.select_model`.",
         "",
         "## RANSAC breakdown (plane)",
