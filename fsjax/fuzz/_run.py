@@ -11,7 +11,11 @@ Tolerances (stated, for MISMATCH): a floating leaf agrees when
 ``|x - y| <= rtol * max(1, max|y|)`` element-wise (``rtol`` 1e-6 in float64, 2e-3 in
 float32; NaN equals NaN; slots a ``valid`` mask marks unused are ignored); a bool or
 integer leaf agrees when at most 1 % of its elements differ (a float that rounds across a
-threshold flips a pixel), and a 0-d one must be equal.
+threshold flips a pixel), and a 0-d one must be equal. A value that is NaN under the trace
+where the eager call is finite is not a MISMATCH: a traced way may fail closed where an eager
+call sizes its buffers from the data (``render_depth``); the traced output is then checked
+as NONFINITE (explained only by a flag or a sort's documented NaN) and later stages, which
+saw other data, are not compared.
 """
 
 from __future__ import annotations
@@ -170,11 +174,22 @@ def _nbytes(tree) -> int:
     return sum(int(getattr(v, "nbytes", 0)) for v in jax.tree_util.tree_leaves(tree))
 
 
-def _differ(x, y, dtype: str) -> str | None:
-    """``None`` when trees agree within the stated tolerance, else a short description."""
+def _differ(x, y, dtype: str, nan_only: list | None = None) -> str | None:
+    """``None`` when trees agree within the stated tolerance, else a short description.
+
+    Floating values that are NaN in ``x`` (the traced way) where ``y`` (eager) is finite are
+    not counted as a difference when ``nan_only`` is a list: their counts are appended to it,
+    and the caller checks the traced output as a NONFINITE candidate instead (a traced way
+    may fail closed where an eager call could size its buffers from the data).
+    """
     import jax
     import numpy as np
 
+    if nan_only is None:
+        nan_only = []
+        strict = True
+    else:
+        strict = False
     if type(x) is not type(y):
         return f"sorts differ ({type(x).__name__} vs {type(y).__name__})"
     tx, ty = jax.tree_util.tree_structure(x), jax.tree_util.tree_structure(y)
@@ -192,6 +207,9 @@ def _differ(x, y, dtype: str) -> str | None:
                 close |= ~m
             if not close.all():
                 bad = ~close
+                if not strict and np.all(np.isnan(fa[bad]) & np.isfinite(fb[bad])):
+                    nan_only.append(int(bad.sum()))
+                    continue
                 d = np.abs(fa - fb)[bad & np.isfinite(fa) & np.isfinite(fb)]
                 return (f"{int(bad.sum())} of {bad.size} values differ (max {float(d.max()) if d.size else float('nan'):.3g}"
                         f", scale {scale:.3g})")
@@ -319,8 +337,8 @@ class Runner:
         t = getattr(out, "truncated", None)
         if t is not None and bool(np.any(np.asarray(t))):
             return
-        if type(out).__name__ == "Feature" and not infs:
-            return  # a NaN Feature is the documented "could not measure"
+        if type(out).__name__ in ("Feature", "Depth") and not infs:
+            return  # documented: a NaN Feature is "could not measure", a NaN depth "no return"
         raise _Fail("NONFINITE", i, op, mode, "inf in the output" if infs else "NaN in the output")
 
     # -- the four ways ----------------------------------------------------------
@@ -427,7 +445,11 @@ class Runner:
                 return
             for i, ye in enumerate(eager_outs):
                 got = jax.tree_util.tree_map(lambda v: v[0], yb[i])
-                d = _differ(got, ye, dtype)
+                nans: list = []
+                d = _differ(got, ye, dtype, nans)
+                if nans and not d:
+                    self._check_finite(i, chain.stages[i].op, got, "vmap")
+                    break  # failed closed under the trace: later stages saw other data
                 if d:
                     if self._jit_way(chain, f, x, x2, knobs, eager_outs, dtype, out):
                         raise _Fail("MISMATCH", i, chain.stages[i].op, "vmap", "vmap vs eager: " + d.split(" (")[0], d)
@@ -461,7 +483,11 @@ class Runner:
             self._traced_error(e, chain, "jit", out)
             return False
         for i, (ye, yj) in enumerate(zip(eager_outs, ys)):
-            d = _differ(yj, ye, dtype)
+            nans: list = []
+            d = _differ(yj, ye, dtype, nans)
+            if nans and not d:
+                self._check_finite(i, chain.stages[i].op, yj, "jit")
+                break  # failed closed under the trace: later stages saw other data
             if d:
                 raise _Fail("MISMATCH", i, chain.stages[i].op, "jit", "jit vs eager: " + d.split(" (")[0], d)
         c0 = _COMPILES["n"]

@@ -19,7 +19,7 @@ from fsjax import Contour, Image, Region
 from fsjax.registry import register
 
 PLANTED = ("planted_wrong_sort", "planted_odd_index", "planted_recompile", "planted_overflow",
-           "planted_nan_grad", "planted_jit_differs")
+           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs")
 
 
 def _plant():
@@ -56,6 +56,11 @@ def _plant():
         return Image(jnp.sqrt(d * d))
 
     @register(family="planted", takes=Image, gives=Image)
+    def planted_traced_nan(img: Image) -> Image:
+        """Planted bug: NaN under a trace where the eager call is finite (an Image has no NaN flag)."""
+        return Image(img.data if fsjax.types.is_concrete(img.data) else img.data * jnp.nan)
+
+    @register(family="planted", takes=Image, gives=Image)
     def planted_jit_differs(img: Image) -> Image:
         """Planted bug: another answer under a trace than eagerly."""
         k = 1.0 if fsjax.types.is_concrete(img.data) else 1.5
@@ -67,8 +72,9 @@ def planted():
     with fz.temporary_ops():
         _plant()
         specs = fsjax.list_ops(family="planted") + [fsjax.get_op(n) for n in ("gaussian", "otsu", "mean")]
+        assert {s.name for s in specs} >= set(PLANTED)
         yield fz.Runner(specs), specs
-    assert "planted_odd_index" not in {s.name for s in fsjax.list_ops()}
+    assert not set(PLANTED) & {s.name for s in fsjax.list_ops()}  # nothing leaks into the registry
 
 
 def _chain(ops, kind="scene", size=(8, 8), dtype="float64", params=None):
@@ -86,7 +92,8 @@ def _chain(ops, kind="scene", size=(8, 8), dtype="float64", params=None):
      "planted_overflow"),
     (["planted_nan_grad"], {}, "GRADNAN", "planted_nan_grad"),
     (["planted_jit_differs"], {}, "MISMATCH", "planted_jit_differs"),
-], ids=["wrong_sort", "odd_index", "recompile", "overflow", "nan_grad", "jit_differs"])
+    (["planted_traced_nan"], {}, "NONFINITE", "planted_traced_nan"),
+], ids=["wrong_sort", "odd_index", "recompile", "overflow", "nan_grad", "jit_differs", "traced_nan"])
 def test_planted_bug_caught_in_its_class(planted, ops, kw, cls, op):
     runner, _ = planted
     o = runner.run(_chain(ops, **kw))
