@@ -48,6 +48,7 @@ from ._gen import generate_chain as generate_chain
 from ._report import BLOCKING as BLOCKING
 from ._report import FuzzRun as FuzzRun
 from ._report import fuzz as fuzz
+from ._report import load_journal as load_journal
 from ._report import minimise as minimise
 from ._report import pool_sorts as pool_sorts
 from ._report import replay as replay
@@ -58,4 +59,4 @@ from ._run import Outcome as Outcome
 from ._run import Runner as Runner
 
 __all__ = ["BLOCKING", "CLASSES", "Chain", "FuzzRun", "Outcome", "Runner", "SortGraph", "Stage", "build_input",
-           "fuzz", "generate_chain", "minimise", "pool_sorts", "replay", "temporary_ops", "write_report"]
+           "fuzz", "generate_chain", "load_journal", "minimise", "pool_sorts", "replay", "temporary_ops", "write_report"]

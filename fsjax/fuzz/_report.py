@@ -17,7 +17,7 @@ from typing import Any
 from ._gen import Chain, SortGraph, generate_chain
 from ._run import CLASSES, Outcome, Runner
 
-__all__ = ["FuzzRun", "fuzz", "minimise", "replay", "write_report", "temporary_ops", "pool_sorts",
+__all__ = ["FuzzRun", "fuzz", "load_journal", "minimise", "replay", "write_report", "temporary_ops", "pool_sorts",
            "BLOCKING"]
 
 # classes a CI fuzz fails on (the issue's goal: 0 of each)
@@ -185,6 +185,44 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
             run.minimised[sig] = minimise(runner, c, o, max_trials=max_minimise_trials)
         run.minimise_seconds = time.perf_counter() - t1
     return run
+
+
+def load_journal(path: str | os.PathLike, *, seed: int = -1, max_length: int = 0,
+                 specs: Sequence[Any] | None = None) -> FuzzRun:
+    """A :class:`FuzzRun` rebuilt from a journal (``fuzz(journal=...)``, ``DIR/chains.jsonl``),
+    e.g. to report on a run that is still going or was stopped. Wall time is the sum of the
+    chains' own times; nothing is minimised."""
+    specs = list(_default_specs() if specs is None else specs)
+    run = FuzzRun(seed, max_length, {s.name: s for s in specs}, SortGraph(specs, pool_sorts(specs)))
+    for line in Path(path).read_text().splitlines():
+        if not line.strip():
+            continue
+        d = json.loads(line)
+        od = dict(d["outcome"])
+        for k in ("refused", "refused_traced"):
+            if od.get(k) is not None:
+                od[k] = tuple(od[k])
+        c = Chain.from_json(d["chain"])
+        od["executed"] = tuple(od["executed"]) if "executed" in od else _infer_executed(c, od)
+        o = Outcome(**od)
+        run.results.append((c, o))
+        run.max_length = max(run.max_length, len(c.stages))
+        run.seconds += o.seconds
+    return run
+
+
+def _infer_executed(c: Chain, od: dict) -> tuple[str, ...]:
+    # journals written before outcomes carried ``executed``: the ops whose eager call completed
+    ops = [s.op for s in c.stages]
+    n = len(ops)
+    if od.get("refused"):
+        n = ops.index(od["refused"][0]) if od["refused"][0] in ops else n
+    if od["status"] == "error":
+        n = 0
+    elif od["status"] == "failed" and od.get("mode") in ("eager", "check") and od.get("cls") != "RECOMPILE":
+        k = od.get("stage") or 0
+        n = min(n, k + 1 if od.get("cls") in ("CONTRACT", "NONFINITE", "GROWTH", "SILENT_OVERFLOW") else k)
+    return tuple(ops[:n])
 
 
 # ---------------------------------------------------------------------------

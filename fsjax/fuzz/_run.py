@@ -56,7 +56,7 @@ class Outcome:
     times: dict = dataclasses.field(default_factory=dict)   # seconds per way (eager, jit, vmap, grad)
 
     def to_json(self) -> dict:
-        return {k: v for k, v in dataclasses.asdict(self).items() if k not in ("executed",)}
+        return dataclasses.asdict(self)
 
 
 class _Fail(Exception):
