@@ -55,4 +55,5 @@ from .points._segment import *  # noqa: F403
 from .volume._distance3d import *  # noqa: F403
 from .volume._filters3d import *  # noqa: F403
 from .volume._label3d import *  # noqa: F403
+from .volume._morphology3d import *  # noqa: F403
 from .volume._project3d import *  # noqa: F403

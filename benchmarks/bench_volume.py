@@ -1,0 +1,182 @@
+"""Volume benchmark: fsjax 3-D Gaussian / median / EDT / label against SciPy and scikit-image.
+
+Workloads, on N^3 volumes (N = 64, 128; ``--big`` adds 256), float32 (JAX's default dtype;
+SciPy gets the same float32 arrays and returns float32 for the filters):
+
+* ``gaussian``: ``gaussian3d(sigma=2)`` at unit spacing vs ``scipy.ndimage.gaussian_filter(x, 2)``;
+* ``median``: ``median3d(radius=1)`` (3x3x3 cube) vs ``scipy.ndimage.median_filter(x, size=3)``;
+* ``edt``: ``distance_transform3d`` of a mask of random balls at spacing (2, 1, 1) vs
+  ``scipy.ndimage.distance_transform_edt(m, sampling=(2, 1, 1))``;
+* ``label``: ``label3d(connectivity=26)`` of a thresholded smoothed noise vs
+  ``scipy.ndimage.label(m, np.ones((3, 3, 3)))`` and ``skimage.measure.label(m, connectivity=3)``.
+
+scikit-image's 3-D Gaussian, median and EDT call ``scipy.ndimage`` (``skimage.filters.gaussian``
+and ``median`` wrap it; it has no EDT of its own), so only its labelling is timed separately.
+Each task runs single (one volume) and batched (B = 4 volumes: ``jit(vmap(op))`` against a
+Python loop of the peer). Accuracy beside speed: max |fsjax - scipy| (labels: equal arrays).
+Timing from ``benchmarks/_harness.py``: medians of round-robin repeats after warm-up, compile
+time apart, load average recorded.
+
+Run ``python benchmarks/bench_volume.py [--quick] [--big] [--write-docs]``; ``--write-docs``
+writes ``docs/benchmarks_volume.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(ROOT))
+
+from _harness import jax_compile, load_average, machine_info, time_round_robin  # noqa: E402
+
+BATCH = 4
+
+
+def _inputs(n: int, b: int, seed: int = 0):
+    """``b`` volumes of each kind: grey texture, ball mask, blob mask (float32)."""
+    import scipy.ndimage as ndi
+
+    rng = np.random.default_rng(seed)
+    grey, balls, blobs = [], [], []
+    zz, yy, xx = np.ogrid[0:n, 0:n, 0:n]
+    for _ in range(b):
+        grey.append(rng.random((n, n, n)).astype(np.float32))
+        m = np.ones((n, n, n), bool)
+        for c in rng.uniform(0, n, (max(4, n // 8), 3)):
+            r = rng.uniform(n / 16, n / 6)
+            m &= ((zz - c[0]) ** 2 + (yy - c[1]) ** 2 + (xx - c[2]) ** 2) > r * r
+        balls.append(m.astype(np.float32))
+        blobs.append((ndi.gaussian_filter(rng.random((n, n, n)), 2.0) > 0.52).astype(np.float32))
+    return np.stack(grey), np.stack(balls), np.stack(blobs)
+
+
+def run(quick: bool, big: bool) -> list[dict]:
+    import jax
+    import jax.numpy as jnp
+    import scipy.ndimage as ndi
+    from skimage import measure
+
+    from fsjax import Volume
+    from fsjax import ops as O
+
+    sp = (2.0, 1.0, 1.0)
+    ops = {
+        "gaussian": (lambda d: O.gaussian3d(Volume(d), sigma=2.0).data,
+                     lambda v: ndi.gaussian_filter(v, 2.0), "grey"),
+        "median": (lambda d: O.median3d(Volume(d), radius=1).data,
+                   lambda v: ndi.median_filter(v, size=3), "grey"),
+        "edt": (lambda d: O.distance_transform3d(Volume(d, spacing=sp)).data,
+                lambda v: ndi.distance_transform_edt(v > 0.5, sampling=sp), "balls"),
+        "label": (lambda d: O.label3d(Volume(d), connectivity=26).data,
+                  lambda v: ndi.label(v > 0.5, np.ones((3, 3, 3)))[0], "blobs"),
+    }
+    sizes = (64,) if quick else ((64, 128, 256) if big else (64, 128))
+    rows = []
+    for n in sizes:
+        grey, balls, blobs = _inputs(n, BATCH)
+        data = {"grey": grey, "balls": balls, "blobs": blobs}
+        for task, (ours, ref, kind) in ops.items():
+            xs = data[kind]
+            f1 = jax.jit(ours)
+            fb = jax.jit(jax.vmap(ours))
+            x1, xb = jnp.asarray(xs[0]), jnp.asarray(xs)
+            c1, _ = jax_compile(f1, x1)
+            cb, _ = jax_compile(fb, xb)
+            out1 = np.asarray(f1(x1))
+            r1 = ref(xs[0])
+            if task == "label":
+                acc = "equal" if np.array_equal(out1, r1) else "DIFFER"
+                sk = measure.label(xs[0] > 0.5, connectivity=3)
+                acc_sk = "equal" if np.array_equal(out1, sk) else "DIFFER"
+            else:
+                acc = f"{float(np.max(np.abs(out1.astype(np.float64) - r1))):.1e}"
+                acc_sk = ""
+            comp = {"fsjax": lambda f1=f1, x1=x1: jax.block_until_ready(f1(x1)),
+                    "scipy": lambda ref=ref, xs=xs: ref(xs[0]),
+                    "fsjax_b": lambda fb=fb, xb=xb: jax.block_until_ready(fb(xb)),
+                    "scipy_b": lambda ref=ref, xs=xs: [ref(v) for v in xs]}
+            if task == "label":
+                comp["skimage"] = lambda xs=xs: measure.label(xs[0] > 0.5, connectivity=3)
+                comp["skimage_b"] = lambda xs=xs: [measure.label(v > 0.5, connectivity=3) for v in xs]
+            reps = 3 if (quick or n >= 256) else 5
+            tim = time_round_robin(comp, repeats=reps, warmup=1)
+            row = dict(task=task, n=n, compile1=c1, compileb=cb, acc=acc, acc_sk=acc_sk,
+                       **{k: tim[k].median for k in comp})
+            rows.append(row)
+            sk_txt = (f", skimage {row['skimage'] * 1e3:.1f} ms / batch {row['skimage_b'] * 1e3:.1f} ms"
+                      if task == "label" else "")
+            print(f"{task} {n}^3: fsjax {row['fsjax'] * 1e3:.1f} ms (compile {c1:.2f} s), scipy "
+                  f"{row['scipy'] * 1e3:.1f} ms; batch {BATCH}: fsjax {row['fsjax_b'] * 1e3:.1f} ms "
+                  f"(compile {cb:.2f} s), scipy {row['scipy_b'] * 1e3:.1f} ms{sk_txt}; accuracy {acc} "
+                  f"{acc_sk}; load {load_average()}", flush=True)
+    return rows
+
+
+def write_docs(rows: list[dict], cmd: str) -> None:
+    mi = machine_info()
+    la = load_average()
+
+    def mark(ours, peer):
+        return "reached" if ours <= peer else "not reached"
+
+    lines = [
+        "# Benchmark: volume filters, distance transform and labelling (issue 16)",
+        "",
+        f"Generated by `{cmd}`. fsjax (jitted, float32 inputs, x64 off) against",
+        "`scipy.ndimage` and scikit-image in one process on the same arrays (see the module docstring",
+        "of `benchmarks/bench_volume.py` for the workloads). Single: one N^3 volume; batched: B = 4",
+        "volumes, fsjax as `jit(vmap(op))`, the peers as a Python loop. Medians of round-robin repeats",
+        "after one warm-up; compile time (trace + lower + XLA compile of a fresh `jit`) measured apart",
+        "and not included in the times. scikit-image's 3-D Gaussian, median and EDT are",
+        "`scipy.ndimage` underneath, so they are not timed twice; its labelling is timed.",
+        "",
+        "Goal (issue 16): single and batched at or below SciPy. The *goal* columns say reached /",
+        "not reached by the median times of this run.",
+        "",
+        f"Machine: {mi.get('cpu', '?')}, {mi.get('cores', '?')} cores, shared with other agents while",
+        f"this ran (load average at the end: {la}); ratios measured in one process are more",
+        "trustworthy than absolute times.",
+        "",
+        "| task | N | fsjax (ms) | scipy (ms) | ratio fsjax/scipy | goal single | fsjax B=4 (ms) | scipy B=4 (ms) "
+        "| ratio B=4 | goal batched | compile single / batched (s) | accuracy vs scipy |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['task']} | {r['n']}^3 | {r['fsjax'] * 1e3:.1f} | {r['scipy'] * 1e3:.1f} | "
+            f"{r['fsjax'] / r['scipy']:.2f} | {mark(r['fsjax'], r['scipy'])} | {r['fsjax_b'] * 1e3:.1f} | "
+            f"{r['scipy_b'] * 1e3:.1f} | {r['fsjax_b'] / r['scipy_b']:.2f} | {mark(r['fsjax_b'], r['scipy_b'])} | "
+            f"{r['compile1']:.2f} / {r['compileb']:.2f} | {r['acc']} |")
+    lab = [r for r in rows if r["task"] == "label"]
+    if lab:
+        lines += ["", "scikit-image labelling (`skimage.measure.label(m, connectivity=3)`):", "",
+                  "| N | fsjax (ms) | skimage (ms) | ratio | fsjax B=4 (ms) | skimage B=4 (ms) | ratio B=4 | "
+                  "labels equal |", "|---|---|---|---|---|---|---|---|"]
+        for r in lab:
+            lines.append(f"| {r['n']}^3 | {r['fsjax'] * 1e3:.1f} | {r['skimage'] * 1e3:.1f} | "
+                         f"{r['fsjax'] / r['skimage']:.2f} | {r['fsjax_b'] * 1e3:.1f} | "
+                         f"{r['skimage_b'] * 1e3:.1f} | {r['fsjax_b'] / r['skimage_b']:.2f} | {r['acc_sk']} |")
+    (ROOT / "docs" / "benchmarks_volume.md").write_text("\n".join(lines) + "\n")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--big", action="store_true", help="add 256^3")
+    ap.add_argument("--write-docs", action="store_true")
+    a = ap.parse_args()
+    rows = run(a.quick, a.big)
+    if a.write_docs:
+        flags = " ".join(f for f, on in (("--quick", a.quick), ("--big", a.big)) if on)
+        write_docs(rows, f"python benchmarks/bench_volume.py {flags} --write-docs".replace("  ", " "))
+
+
+if __name__ == "__main__":
+    main()
