@@ -51,6 +51,15 @@ def test_label_equals_scipy(name):
     assert np.array_equal(np.asarray(label3d(v).data), sk)
 
 
+def test_label_nested_vmap_uses_the_batching_rule():
+    rng = np.random.default_rng(1)
+    ms = rng.random((2, 3, 6, 7, 8)) < 0.3
+    out = jax.jit(jax.vmap(jax.vmap(lambda d: label3d(Volume(d)).data)))(jnp.asarray(ms, jnp.float32))
+    for i in range(2):
+        for j in range(3):
+            assert np.array_equal(np.asarray(out[i, j]), ndi.label(ms[i, j], STRUCT[26])[0])
+
+
 def test_label_capacity_fails_closed():
     m = MASKS["speckle"]
     ref, n = ndi.label(m, STRUCT[6])

@@ -108,17 +108,49 @@ def _components(fg, connectivity: int):
     return f, rounds
 
 
-@functools.partial(jax.jit, static_argnames=("connectivity", "capacity"))
-def label3d_array(fg, connectivity: int = 26, capacity: int = 1024):
-    """``(labels (D, H, W) int32, count, truncated, rounds)`` of a bool volume (internal)."""
-    root, rounds = _components(fg, connectivity)
+def _ranked(fg, connectivity: int):
+    """Labels of one bool volume before the capacity cut (rank of each voxel's root) and the count."""
+    root, _ = _components(fg, connectivity)
     fgf = fg.reshape(-1)
     is_root = fgf & (root == jnp.arange(root.shape[0], dtype=jnp.int32))
     rank = cumsum_count(is_root)
-    total = rank[-1]
-    rank = jnp.where(rank <= capacity, rank, 0)
     lab = jnp.where(fgf, rank.at[root].get(mode="promise_in_bounds"), 0).astype(jnp.int32)
-    return lab.reshape(fg.shape), jnp.minimum(total, capacity), total > capacity, rounds
+    return lab.reshape(fg.shape), rank[-1]
+
+
+@functools.cache
+def _labeller(connectivity: int):
+    """``_ranked`` with a batching rule: a batch of volumes is labelled as ONE volume (the members
+    stacked along z with a background slice between them, which no component can cross), so the
+    union-find rounds, gathers and scatters are unbatched (``vmap`` of the plain loop runs
+    batched scatters and selects, measured about 2x slower per volume)."""
+
+    @jax.custom_batching.custom_vmap
+    def labeller(fg):
+        return _ranked(fg, connectivity)
+
+    @labeller.def_vmap
+    def _rule(axis_size, in_batched, fg):
+        if not in_batched[0]:
+            return labeller(fg), (False, False)
+        b, d, h, w = fg.shape
+        big = jnp.pad(fg, ((0, 0), (0, 1), (0, 0), (0, 0))).reshape(b * (d + 1), h, w)
+        root, _ = _components(big, connectivity)
+        fgf = big.reshape(-1)
+        is_root = fgf & (root == jnp.arange(root.shape[0], dtype=jnp.int32))
+        rank = jax.vmap(cumsum_count)(is_root.reshape(b, -1))  # ranks restart in every member
+        lab = jnp.where(fgf, rank.reshape(-1).at[root].get(mode="promise_in_bounds"), 0).astype(jnp.int32)
+        return (lab.reshape(b, d + 1, h, w)[:, :d], rank[:, -1]), (True, True)
+
+    return labeller
+
+
+@functools.partial(jax.jit, static_argnames=("connectivity", "capacity"))
+def label3d_array(fg, connectivity: int = 26, capacity: int = 1024):
+    """``(labels (D, H, W) int32, count, truncated)`` of a bool volume (internal)."""
+    lab, total = _labeller(connectivity)(fg)
+    lab = jnp.where(lab <= capacity, lab, 0)
+    return lab, jnp.minimum(total, capacity), total > capacity
 
 
 @register(family="label3d", takes=Volume, gives=LabelVolume, differentiable=False, refs=_REFS)
@@ -164,7 +196,7 @@ def label3d(vol: Volume, /, *, level: float = 0.5, connectivity: int = 26, capac
     check_finite_number(op, "level", level)
     conn = _check_conn(op, connectivity)
     cap = check_static_int(op, "capacity", capacity, lo=1)
-    lab, count, truncated, _ = label3d_array(vol.data > level, conn, cap)
+    lab, count, truncated = label3d_array(vol.data > level, conn, cap)
     return LabelVolume(lab, count=count, truncated=truncated, spacing=vol.spacing, unit=vol.unit)
 
 
