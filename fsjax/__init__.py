@@ -19,6 +19,10 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
+# Modules whose import registers ops; the registry imports them on first lookup
+# (fsjax.registry names no op module: it sits below the ops in the layering).
+OP_PROVIDERS = ("fsjax.ops",)
+
 # subpackages / modules reachable as attributes
 _SUBMODULES = ("data", "fit", "ops", "render", "io", "synth", "evolve", "types", "registry", "pipeline")
 # former module paths, still reachable as attributes (importing them warns: DeprecationWarning)

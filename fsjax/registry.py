@@ -31,6 +31,7 @@ import contextlib
 import dataclasses
 import difflib
 import functools
+import importlib
 import inspect
 import math
 from collections.abc import Callable, Sequence
@@ -53,6 +54,7 @@ __all__ = [
     "families",
     "UnknownOpError",
     "compiled_calls",
+    "add_op_provider",
 ]
 
 
@@ -508,9 +510,33 @@ def _call(opname: str, fn: Callable, args: tuple, kwargs: dict):
         return fn(*args, **kwargs)
 
 
+# Modules whose import registers ops. The registry sits below the ops in the layering
+# (docs/architecture.md) and names no op module itself: the top-level package, which wires
+# the layers, lists the providers (``fsjax.OP_PROVIDERS``), and a plug-in may add its own
+# with :func:`add_op_provider`.
+_PROVIDERS: list[str] = []
+_LOADED: set[str] = set()
+
+
+def add_op_provider(module: str) -> None:
+    """Name a module whose import registers ops; lookups import it on first use.
+
+    ``fsjax`` itself adds ``"fsjax.ops"``; a package of further ops calls this once at
+    import time so that :func:`get_op`, :func:`list_ops` and pipelines see its ops.
+    """
+    if not isinstance(module, str) or not module:
+        raise TypeError(f"add_op_provider: argument 'module' must be a module name (str), got {module!r}")
+    if module not in _PROVIDERS:
+        _PROVIDERS.append(module)
+
+
 def _ensure_loaded() -> None:
-    # Importing fsjax.ops registers every op family.
-    from . import ops  # noqa: F401
+    from . import OP_PROVIDERS  # the package's wiring (a tuple of module names, no import)
+
+    for name in (*OP_PROVIDERS, *_PROVIDERS):
+        if name not in _LOADED:
+            importlib.import_module(name)
+            _LOADED.add(name)
 
 
 def get_op(name: str) -> OpSpec:
