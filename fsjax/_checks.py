@@ -5,7 +5,7 @@ came, in one form::
 
     gaussian: argument 'sigma' must be > 0, got -1.0
 
-Two tiers (DESIGN.md, STYLE.md): *static* problems (a wrong type, a shape-fixing int that
+Two tiers (docs/architecture.md, "Results and errors"): *static* problems (a wrong type, a shape-fixing int that
 is not an int, an unknown option, a concrete value out of range) raise here, while
 tracing, with that message; *traced* values (knobs inside ``jit``/``vmap``) cannot be
 checked eagerly and are the op's business (poisoned output, ``eqx.error_if`` or a result
