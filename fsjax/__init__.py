@@ -35,8 +35,9 @@ _NAMES = {
     **{n: ".registry" for n in ("IntKnob", "LinKnob", "LogKnob", "OpSpec", "UnknownOpError", "compiled_calls",
                                 "families", "get_op", "list_ops", "register")},
     **{n: ".types" for n in ("HSV", "Camera", "Color", "Contour", "Depth", "Edges1D", "Feature", "Fit",
-                             "Gaussians", "Image", "Lab", "Labels", "LabelVolume", "Match", "Mesh", "Points",
-                             "Region", "RegionProps", "Signal", "Sort", "Volume")},
+                             "Gaussians", "Image", "Lab", "Labels", "Match", "Mesh", "Points", "Region",
+                             "RegionProps", "Signal", "Sort", "Volume", "LabelVolume", "LightStack", "NormalMap",
+                             "FringeStack", "GrayStack", "PointValues", "PointLabels", "StructuredLightRig")},
 }
 
 __all__ = sorted(_NAMES) + list(_SUBMODULES)
@@ -115,3 +116,10 @@ if TYPE_CHECKING:  # static analysers see the eager imports
     from .types import Signal as Signal
     from .types import Sort as Sort
     from .types import Volume as Volume
+    from .types import FringeStack as FringeStack
+    from .types import GrayStack as GrayStack
+    from .types import LightStack as LightStack
+    from .types import NormalMap as NormalMap
+    from .types import PointLabels as PointLabels
+    from .types import PointValues as PointValues
+    from .types import StructuredLightRig as StructuredLightRig
