@@ -38,15 +38,15 @@ from _harness import load_average, machine_info, time_round_robin  # noqa: E402
 
 from fsjax.fit import icp, rotation_error_deg, rotation_from_axis_angle  # noqa: E402
 from fsjax.fit.global_reg import _crop_pair, global_registration  # noqa: E402
-from fsjax.fit.icp import _bunny_points  # noqa: E402
+from fsjax.data import surface_points  # noqa: E402
 from fsjax.tour.registration import measure_basin  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def icp_inputs(n: int):
-    x = _bunny_points(n, 0)
-    y = _bunny_points(n, 1)
+    x = surface_points("bunny", n, 0)
+    y = surface_points("bunny", n, 1)
     r = np.asarray(rotation_from_axis_angle(jnp.array([0.3, 1.0, -0.4]), 10.0))
     t = np.array([0.005, -0.003, 0.002])
     src = (y - t) @ r  # target = R src + t
@@ -107,12 +107,12 @@ def bench_batched(n: int, batch: int, repeats: int, dname: str = "float32") -> l
 
     reg = o3d.pipelines.registration
     rng = np.random.default_rng(7)
-    base = _bunny_points(n, 0)
+    base = surface_points("bunny", n, 0)
     srcs, tgts, rots = [], [], []
     for b in range(batch):
         axis = rng.normal(size=3)
         rr = np.asarray(rotation_from_axis_angle(jnp.asarray(axis), 10.0))
-        y = _bunny_points(n, 100 + b)
+        y = surface_points("bunny", n, 100 + b)
         t = rng.normal(size=3) * 0.003
         srcs.append((y - t) @ rr)
         tgts.append(base)

@@ -25,6 +25,8 @@ import importlib  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from fsjax.data import surface_points  # noqa: E402
+
 icp_mod = importlib.import_module("fsjax.fit.icp")
 from fsjax.fit import rotation_from_axis_angle  # noqa: E402
 
@@ -49,8 +51,8 @@ def main():
     ap.add_argument("--x64", action="store_true")
     a = ap.parse_args()
     dt = jnp.float64 if a.x64 else jnp.float32
-    x = icp_mod._bunny_points(a.n, 0)
-    y = icp_mod._bunny_points(a.n, 1)
+    x = surface_points("bunny", a.n, 0)
+    y = surface_points("bunny", a.n, 1)
     r = np.asarray(rotation_from_axis_angle(jnp.array([0.3, 1.0, -0.4]), 10.0))
     t = np.array([0.005, -0.003, 0.002])
     src = jnp.asarray((y - t) @ r, dt)

@@ -133,8 +133,8 @@ def fpfh(
     Example:
         >>> import jax.numpy as jnp
         >>> from fsjax.fit import fpfh, rotation_from_axis_angle
-        >>> from fsjax.fit.icp import _bunny_points
-        >>> x = jnp.asarray(_bunny_points(400, 0))
+        >>> from fsjax.data import surface_points
+        >>> x = jnp.asarray(surface_points("bunny", 400, 0))
         >>> f1, ok1, _ = fpfh(x, radius=0.03)
         >>> f2, ok2, _ = fpfh(x @ rotation_from_axis_angle(jnp.array([1.0, 2, 3]), 70.0).T, radius=0.03)
         >>> bool(ok1.all()), float(jnp.abs(f1 - f2).max()) < 1e-9   # rotation invariant
@@ -381,9 +381,9 @@ def _point_refit(coarse, xs, xt, distance, rounds):
 
 def _crop_pair(n_points: int, keep: float, seed: int):
     """Two independent bunny samples cropped along x: source keeps the low ``keep`` fraction, target the high."""
-    from .icp import _bunny_points
+    from ..data import surface_points
 
-    a, b = _bunny_points(n_points, seed), _bunny_points(n_points, seed + 1)
+    a, b = surface_points("bunny", n_points, seed), surface_points("bunny", n_points, seed + 1)
     xs = a[a[:, 0] <= np.quantile(a[:, 0], keep)]
     xt = b[b[:, 0] >= np.quantile(b[:, 0], 1.0 - keep)]
     return xs, xt

@@ -620,24 +620,6 @@ def icp_multistart(
     return MultiStartResult(best=best, index=k.astype(jnp.int32), starts=res)
 
 
-def _bunny_points(n: int, seed: int = 0) -> np.ndarray:
-    """``(n, 3)`` area-weighted samples of the bundled Stanford Bunny surface (numpy, deterministic).
-
-    Triangles are drawn with probability proportional to their area, points uniformly inside by
-    the square-root barycentric rule. Used by the tests, the tour and the benchmark.
-    """
-    from ..data import mesh_arrays
-
-    v, f = mesh_arrays("bunny")
-    rng = np.random.default_rng(seed)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    tri = rng.choice(len(f), size=n, p=area / area.sum())
-    r1, r2 = rng.random(n), rng.random(n)
-    s = np.sqrt(r1)
-    return (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
-
-
 def __getattr__(name):
     if name == "knn":
         deprecated_name("fsjax.fit.knn", "fsjax.ops.knn")

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from fsjax.fit import icp, icp_multistart, rotation_error_deg, rotation_from_axis_angle
-from fsjax.fit.icp import _bunny_points
+from fsjax.data import surface_points
 
 from ._core import Section
 
@@ -39,7 +39,7 @@ _SHIFT = np.array([0.02, -0.01, 0.015])
 def measure_self_registration(n_points: int = 1000, noise: float = 1e-4, angle_deg: float = 30.0,
                               seed: int = 0) -> dict:
     """Unknown rotation + translation + noise; ICP p2p / p2plane / GICP from the identity."""
-    x = _bunny_points(n_points, seed)
+    x = surface_points("bunny", n_points, seed)
     rng = np.random.default_rng(seed + 100)
     r = np.asarray(rotation_from_axis_angle(jnp.asarray(_AXIS), angle_deg))
     src = (x - _SHIFT) @ r + noise * rng.normal(size=x.shape)  # target = R src + t
@@ -62,7 +62,7 @@ def measure_basin(method: str, angles_deg=(0, 30, 60, 90, 120, 150, 180), n_axes
     """
     from scipy.spatial.transform import Rotation
 
-    x = _bunny_points(n_points, seed)
+    x = surface_points("bunny", n_points, seed)
     c = x.mean(0)
     axes = Rotation.random(n_axes, random_state=seed + 2).apply([1.0, 0.0, 0.0])
     angles = np.asarray(angles_deg, float)
@@ -116,7 +116,7 @@ def _scatter(path: Path, clouds: list[tuple[np.ndarray, str]], title: str) -> st
 def self_registration(out: Path, quick: bool) -> Section:
     n = 1000
     r = measure_self_registration(n, 1e-4)
-    x = _bunny_points(n, 0)
+    x = surface_points("bunny", n, 0)
     rot = np.asarray(rotation_from_axis_angle(jnp.asarray(_AXIS), 30.0))
     fig = _scatter(out / "registration_self.png", [(x, "0.6"), ((x - _SHIFT) @ rot, "k")],
                    "bunny (grey) and the moved copy (black), x-y")

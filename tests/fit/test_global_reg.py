@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from fsjax.fit import fpfh, ransac_registration, rotation_error_deg, rotation_from_axis_angle
-from fsjax.fit.icp import _bunny_points
+from fsjax.data import surface_points
 from fsjax.tour.registration import measure_global
 
 COARSE_MAX = 1.0  # issue 4 item 2: FPFH + RANSAC (with the point-pair refit) within 1 deg
 
 
 def test_fpfh_rotation_invariant_and_distinctive():
-    x = jnp.asarray(_bunny_points(400, 0))
+    x = jnp.asarray(surface_points("bunny", 400, 0))
     r = rotation_from_axis_angle(jnp.array([1.0, 2.0, 3.0]), 70.0)
     f1, ok1, tr1 = fpfh(x, radius=0.03)
     f2, ok2, _ = fpfh(x @ r.T + 0.1, radius=0.03)

@@ -14,7 +14,7 @@ from fsjax.fit import (
     rotation_from_axis_angle,
     rotation_grid,
 )
-from fsjax.fit.icp import _bunny_points
+from fsjax.data import surface_points
 from fsjax.ops import knn
 from fsjax.tour.registration import measure_basin, measure_self_registration
 
@@ -22,7 +22,7 @@ from fsjax.tour.registration import measure_basin, measure_self_registration
 def test_knn_matches_ckdtree():
     from scipy.spatial import cKDTree
 
-    ref, qry = _bunny_points(700, 1), _bunny_points(300, 2)
+    ref, qry = surface_points("bunny", 700, 1), surface_points("bunny", 300, 2)
     valid = np.arange(700) % 5 != 0
     idx, d2 = knn(jnp.asarray(ref), jnp.asarray(qry), 8, ref_valid=jnp.asarray(valid))
     dd, ii = cKDTree(ref[valid]).query(qry, 8)
@@ -73,7 +73,7 @@ def test_basin_of_convergence(method, all_ok_to, none_from):
 
 
 def test_multistart_vmaps_and_picks_best():
-    x = _bunny_points(400, 3)
+    x = surface_points("bunny", 400, 3)
     c = x.mean(0)
     r = np.asarray(rotation_from_axis_angle(jnp.array([1.0, -0.5, 0.2]), 150.0))
     src = (x - c) @ r + c
@@ -90,7 +90,7 @@ def test_multistart_vmaps_and_picks_best():
 
 
 def test_trimmed_icp_partial_overlap():
-    x = _bunny_points(1200, 4)
+    x = surface_points("bunny", 1200, 4)
     keep_s = x[:, 0] <= np.quantile(x[:, 0], 0.75)
     keep_t = x[:, 0] >= np.quantile(x[:, 0], 0.25)
     r = np.asarray(rotation_from_axis_angle(jnp.array([0.0, 1.0, 0.3]), 10.0))
@@ -108,7 +108,7 @@ def test_trimmed_icp_partial_overlap():
 
 def test_bad_input_fails_closed():
     # every case is a 200-slot cloud (fewer points = a valid mask), so each method compiles once
-    x = jnp.asarray(_bunny_points(200, 5))
+    x = jnp.asarray(surface_points("bunny", 200, 5))
     nan = np.asarray(x).copy()
     nan[7, 1] = np.nan
     first = lambda k: jnp.arange(200) < k  # noqa: E731
@@ -145,7 +145,7 @@ def _f32_scene(scale):
     (every 36th, 999 points) as target, and an independent area-weighted sample of its surface (999
     points) moved by 10 deg and 5 mm as source: target = R source + t."""
     v = fsjax.data.mesh_arrays("bunny")[0][::36].astype(np.float64) * scale
-    y = _bunny_points(999, 1) * scale
+    y = surface_points("bunny", 999, 1) * scale
     r = np.asarray(rotation_from_axis_angle(jnp.array([0.3, 1.0, -0.4]), 10.0))
     t = np.array([0.005, -0.003, 0.002]) * scale
     return jnp.asarray(v, jnp.float32), jnp.asarray((y - t) @ r, jnp.float32), r, t

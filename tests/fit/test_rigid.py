@@ -18,7 +18,7 @@ from fsjax.fit import (
     so3_exp,
     so3_log,
 )
-from fsjax.fit.icp import _bunny_points
+from fsjax.data import surface_points
 
 
 def _rotvecs():
@@ -126,7 +126,7 @@ def _raw_pca_frame(x):
 
 @pytest.mark.parametrize("mirror", [False, True], ids=["bunny", "mirrored-bunny"])
 def test_pca_pose_recovered_including_left_handed(mirror):
-    x = _bunny_points(1500, seed=7)
+    x = surface_points("bunny", 1500, seed=7)
     if mirror:
         x = x * np.array([-1.0, 1.0, 1.0])  # its skewness frame is left-handed
     rots = Rotation.random(40, random_state=11).as_matrix()

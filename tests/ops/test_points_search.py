@@ -350,16 +350,16 @@ def test_point_spacing_vs_ckdtree():
 def test_index_built_once_reused_exact_with_coarse_levels():
     # issue 12: one index per cloud, built once and queried many times (ICP's target); the coarse
     # levels answer queries far from the cloud (a 30 deg rotation, points 10 cm off) exactly
-    from fsjax.fit.icp import _bunny_points
+    from fsjax.data import surface_points
     from fsjax.fit.rigid import rotation_from_axis_angle
     from fsjax.ops import build_index, query_knn, query_radius
 
-    ref = _bunny_points(3000, 0)
+    ref = surface_points("bunny", 3000, 0)
     valid = np.arange(3000) % 7 != 0
     rot = np.asarray(rotation_from_axis_angle(jnp.array([0.3, 1.0, -0.4]), 30.0))
-    q1 = _bunny_points(1000, 1) @ rot.T
+    q1 = surface_points("bunny", 1000, 1) @ rot.T
     q1[:50] += 0.1  # far from every reference point
-    q2 = _bunny_points(1000, 2)  # near the cloud: second use of the same index, same compiled query
+    q2 = surface_points("bunny", 1000, 2)  # near the cloud: second use of the same index, same compiled query
     index = jax.jit(lambda r, v: build_index(r, v, k=4, coarse=True))(jnp.asarray(ref), jnp.asarray(valid))
     query = jax.jit(lambda ix, q: query_knn(ix, q, 8))
     for q in (q1, q2):
