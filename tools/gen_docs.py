@@ -430,7 +430,10 @@ def api_modules() -> list[Any]:
                     continue
                 todo.append(importlib.import_module(info.name))
         for mod in todo:
-            if getattr(mod, "__all__", None) and not hasattr(mod, "__path__"):
+            names = getattr(mod, "__all__", None)
+            # a package counts when it defines what it lists (fsjax.data), not when it re-exports
+            own = names and any(getattr(getattr(mod, n, None), "__module__", None) == mod.__name__ for n in names)
+            if names and (not hasattr(mod, "__path__") or own):
                 mods[mod.__name__] = mod
     return [mods[k] for k in sorted(mods)]
 
