@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
@@ -80,6 +81,26 @@ def _wrap_deg(theta_rad):
     d = jnp.degrees(theta_rad)
     d = d - 180.0 * jnp.floor((d + 90.0) / 180.0)  # -> [-90, 90)
     return jnp.where(d <= -90.0, d + 180.0, d)
+
+
+class _TrustRegionInDtype(optx.ClassicalTrustRegion):
+    """optimistix's trust region with its step size in the dtype of ``y``.
+
+    The stock one starts from ``jnp.array(1.0)``: float64 when x64 is on, which makes
+    Levenberg-Marquardt's damping rows float64 beside float32 residuals, and lineax refuses
+    the solve ("Vector and operator structures do not match") for float32 contours.
+    """
+
+    def init(self, y, f_info_struct):
+        state = super().init(y, f_info_struct)
+        dt = jnp.result_type(*jax.tree_util.tree_leaves(y))
+        return eqx.tree_at(lambda s: s.step_size, state, state.step_size.astype(dt))
+
+
+def _lm(rtol, atol):
+    """Levenberg-Marquardt that keeps the dtype of its parameters (float32 stays float32)."""
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    return eqx.tree_at(lambda s: s.search, solver, _TrustRegionInDtype())
 
 
 def _tols(dtype):
@@ -281,7 +302,7 @@ def _circle_fit(pts, w, *, refine: bool, max_steps: int):
     steps = jnp.asarray(0, jnp.int32)
     if refine:
         rtol, atol = _tols(u.dtype)
-        sol = optx.least_squares(_circle_resid_n, optx.LevenbergMarquardt(rtol=rtol, atol=atol), y0,
+        sol = optx.least_squares(_circle_resid_n, _lm(rtol, atol), y0,
                                  args=(us, vs, ws), max_steps=max_steps, throw=False)
         y = sol.value
         ok = ok & (sol.result == optx.RESULTS.successful)
@@ -501,7 +522,7 @@ def _ellipse_fit(pts, w, *, refine: bool, max_steps: int):
     steps = jnp.asarray(0, jnp.int32)
     if refine:
         rtol, atol = _tols(u.dtype)
-        sol = optx.least_squares(_ellipse_resid_n, optx.LevenbergMarquardt(rtol=rtol, atol=atol), y0,
+        sol = optx.least_squares(_ellipse_resid_n, _lm(rtol, atol), y0,
                                  args=(us, vs, ws), max_steps=max_steps, throw=False)
         y = sol.value
         ok = ok & (sol.result == optx.RESULTS.successful)
