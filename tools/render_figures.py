@@ -5,7 +5,7 @@ Usage::
     python tools/render_figures.py          # writes docs/figures/measurement_rendering_*.png and the page
 
 Everything is measured here, against the SDF renderer's ground truth, with the same functions
-the tests assert (``fsjax.ops.measure3d._photometric``, ``fsjax.ops.measure3d._structured_light``,
+the tests assert (``fsjax.synth`` scenes: ``still_life_scene``, ``still_life_mm``,
 ``fsjax.render.sdf``). Takes a few minutes on a shared 2-core machine (compilation).
 """
 
@@ -32,14 +32,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import fsjax  # noqa: E402
-from fsjax.ops.measure3d import _photometric as P  # noqa: E402
-from fsjax.ops.measure3d import _structured_light as SL  # noqa: E402
+from fsjax import ops as _ops  # noqa: E402
+from fsjax import synth  # noqa: E402
 from fsjax.render import sdf as S  # noqa: E402
 
 FIG = REPO / "docs" / "figures"
 PAGE = REPO / "docs" / "measurement_rendering.md"
-HIGH = P.light_directions([66, 70, 74, 78, 66, 70, 74, 78], [0, 45, 90, 135, 180, 225, 270, 315])
-LOW = P.light_directions([30, 35, 40, 45, 30, 35, 40, 45], [0, 45, 90, 135, 180, 225, 270, 315])
+HIGH = _ops.light_directions([66, 70, 74, 78, 66, 70, 74, 78], [0, 45, 90, 135, 180, 225, 270, 315])
+LOW = _ops.light_directions([30, 35, 40, 45, 30, 35, 40, 45], [0, 45, 90, 135, 180, 225, 270, 315])
 
 
 def _circle_overlap(r1, r2, d):
@@ -84,10 +84,10 @@ def penumbra() -> dict:
 
 def photometric() -> dict:
     size = dict(width=96, height=72, pixel_size=0.066)
-    scene = P.still_life_scene()
-    stack, tr = P.render_light_stack(scene, HIGH, shadows=False, **size)
+    scene = synth.still_life_scene()
+    stack, tr = synth.render_light_stack(scene, HIGH, shadows=False, **size)
     n = np.asarray(tr["normals"])
-    br = P.highlight_breakdown(stack, n)
+    br = synth.highlight_breakdown(stack, n)
     fig, ax = plt.subplots(figsize=(6, 3.6))
     for m, lab in (("ls", "least squares"), ("robust", "robust (shadow inequalities)"), ("lmeds", "LMedS (median)")):
         ax.semilogy(br["fraction"] * 100, np.maximum(br[m], 1e-15), "o-", label=lab)
@@ -101,7 +101,7 @@ def photometric() -> dict:
     fig.savefig(FIG / "measurement_rendering_ps_breakdown.png", dpi=110)
     plt.close(fig)
 
-    st2, tr2 = P.render_light_stack(scene, LOW, shadows=True, **size)
+    st2, tr2 = synth.render_light_stack(scene, LOW, shadows=True, **size)
     n2 = np.asarray(tr2["normals"])
     L = np.asarray(st2.lights)
     att = np.einsum("hwc,kc->khw", n2, L) <= 0
@@ -110,7 +110,7 @@ def photometric() -> dict:
     errs = {}
     for m in ("ls", "robust"):
         nm = fsjax.ops.photometric_stereo(st2, method=m)
-        errs[m] = P.angular_error_deg(nm.normals, n2)
+        errs[m] = synth.angular_error_deg(nm.normals, n2)
         if m == "robust":
             z = np.asarray(fsjax.ops.frankot_chellappa(nm, pixel_size=size["pixel_size"]).data)
     dep = np.asarray(tr2["depth"])
@@ -137,11 +137,11 @@ def photometric() -> dict:
 
 
 def structured_light() -> dict:
-    rig = SL.standard_rig()
-    g = SL.capture_geometry(SL.still_life_mm(), rig)
+    rig = synth.standard_rig()
+    g = synth.capture_geometry(synth.still_life_mm(), rig)
     lit, truth = g["lit"], g["depth"]
-    fr = SL.capture_patterns(g)
-    r = SL.decode_depth(fr, rig)
+    fr = synth.capture_patterns(g)
+    r = synth.decode_depth(fr, rig)
 
     def rmse(z, mask):
         return float(np.sqrt(np.mean((z[mask] - truth[mask]) ** 2)))
@@ -149,15 +149,15 @@ def structured_light() -> dict:
     res = {"rmse": rmse(r["depth"], lit), "gray": rmse(r["depth_gray"], lit & np.isfinite(r["depth_gray"])),
            "phase": rmse(r["depth_phase"], lit & np.isfinite(r["depth_phase"])),
            "span": float(np.nanmax(truth[g["hit"]]) - np.nanmin(truth[g["hit"]]))}
-    wrong = SL.decode_depth(fr, SL.standard_rig(gl_trap=True))["depth"]
+    wrong = synth.decode_depth(fr, synth.standard_rig(gl_trap=True))["depth"]
     plaus = np.isfinite(wrong) & lit & (wrong > 100) & (wrong < 2000)
     res["gl_fraction"] = float(plaus.sum() / lit.sum())
     res["gl_median"] = float(np.median(np.abs(wrong[plaus] - truth[plaus])))
     offs = np.round(np.arange(0.0, 0.41, 0.02), 2)
     errs = []
     for off in offs:
-        f2 = SL.capture_patterns(g, phase_offset_periods=float(off))
-        col = SL.decode_depth(f2, rig)["column"]
+        f2 = synth.capture_patterns(g, phase_offset_periods=float(off))
+        col = synth.decode_depth(f2, rig)["column"]
         errs.append(int(np.sum(~(np.abs(col[lit] - (g["u_p"][lit] + off * f2["period_px"])) < f2["period_px"] / 2))))
     res["offsets"], res["order_errors"] = offs, np.asarray(errs)
 
@@ -225,7 +225,7 @@ the exact overlap of the light disc with the sphere's angular disc: max differen
 
 ## Photometric stereo
 
-Still life (`fsjax.ops.measure3d._photometric.still_life_scene`: sunk sphere, torus, capsule and a cone
+Still life (`fsjax.synth.still_life_scene`: sunk sphere, torus, capsule and a cone
 on a plane, five albedos), telecentric view 96 x 72, Lambertian, 8 distant lights.
 
 * No shadows (lights at 66-78 deg): least squares, the robust solver and LMedS all recover the

@@ -21,22 +21,22 @@ from pathlib import Path
 import numpy as np
 
 import fsjax
-from fsjax.ops.measure3d import _photometric as P
-from fsjax.ops.measure3d import _structured_light as SL
+from fsjax import ops as _ops
+from fsjax import synth
 
 from ._core import Section, _panel
 
 __all__ = ["measure_photometric", "measure_structured_light", "SECTIONS"]
 
-LOW_LIGHTS = P.light_directions([30, 35, 40, 45, 30, 35, 40, 45], [0, 45, 90, 135, 180, 225, 270, 315])
+LOW_LIGHTS = _ops.light_directions([30, 35, 40, 45, 30, 35, 40, 45], [0, 45, 90, 135, 180, 225, 270, 315])
 
 
 def measure_photometric(quick: bool = True) -> dict:
     """Still life under 8 low lights with cast and attached shadows; robust vs least squares;
     Frankot-Chellappa integration of the recovered normals vs the true depth."""
     size = dict(width=48, height=36, pixel_size=0.13) if quick else dict(width=96, height=72, pixel_size=0.066)
-    scene = P.still_life_scene()
-    stack, tr = P.render_light_stack(scene, LOW_LIGHTS, shadows=True, **size)
+    scene = synth.still_life_scene()
+    stack, tr = synth.render_light_stack(scene, LOW_LIGHTS, shadows=True, **size)
     n = np.asarray(tr["normals"])
     L = np.asarray(stack.lights)
     attached = np.einsum("hwc,kc->khw", n, L) <= 0
@@ -45,7 +45,7 @@ def measure_photometric(quick: bool = True) -> dict:
     out = {"image": np.asarray(stack.data[0]), "shadowed_fraction": float(sh.mean())}
     for m in ("robust", "ls"):
         nm = fsjax.ops.photometric_stereo(stack, method=m)
-        e = P.angular_error_deg(nm.normals, n)
+        e = synth.angular_error_deg(nm.normals, n)
         out[m] = {"median_shadowed": float(np.nanmedian(e[sh])), "median_all": float(np.nanmedian(e)),
                   "valid": float(np.asarray(nm.valid).mean()), "error_map": e}
         if m == "robust":
@@ -61,10 +61,10 @@ def measure_photometric(quick: bool = True) -> dict:
 
 def measure_structured_light(quick: bool = True) -> dict:
     """Phase shifting + complementary Gray code on the ~100 mm deep still life, with its nulls."""
-    rig = SL.standard_rig(64, 48) if quick else SL.standard_rig()
-    g = SL.capture_geometry(SL.still_life_mm(), rig)
-    fr = SL.capture_patterns(g)
-    r = SL.decode_depth(fr, rig)
+    rig = synth.standard_rig(64, 48) if quick else synth.standard_rig()
+    g = synth.capture_geometry(synth.still_life_mm(), rig)
+    fr = synth.capture_patterns(g)
+    r = synth.decode_depth(fr, rig)
     lit = g["lit"]
     truth = g["depth"]
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 import fsjax
-from fsjax.ops.measure3d import _photometric as P
+from fsjax import ops as _ops
+from fsjax import synth
 
 SIZE = dict(width=64, height=48, pixel_size=0.1)
 # 8 lights; steep ones leave no shadow on this still life (checked), low ones cast shadows
@@ -18,17 +19,17 @@ LOW = fsjax.ops.light_directions([30, 35, 40, 45, 30, 35, 40, 45], [0, 45, 90, 1
 
 @pytest.fixture(scope="module")
 def scene():
-    return P.still_life_scene()
+    return synth.still_life_scene()
 
 
 @pytest.fixture(scope="module")
 def unshadowed(scene):
-    return P.render_light_stack(scene, HIGH, shadows=False, **SIZE)
+    return synth.render_light_stack(scene, HIGH, shadows=False, **SIZE)
 
 
 @pytest.fixture(scope="module")
 def shadowed(scene):
-    return P.render_light_stack(scene, LOW, shadows=True, **SIZE)
+    return synth.render_light_stack(scene, LOW, shadows=True, **SIZE)
 
 
 def test_no_shadows_all_methods_exact(unshadowed):
@@ -39,7 +40,7 @@ def test_no_shadows_all_methods_exact(unshadowed):
     assert ndl.min() > 0, "the unshadowed stack must have no attached shadow"
     for m in ("ls", "robust", "lmeds"):
         nm = fsjax.ops.photometric_stereo(stack, method=m)
-        e = P.angular_error_deg(nm.normals, n)
+        e = synth.angular_error_deg(nm.normals, n)
         da = float(np.max(np.abs(np.asarray(nm.albedo) - np.asarray(tr["albedo"]))))
         print(f"photometric stereo ({m}), 8 lights, no shadows, {n.shape[0]}x{n.shape[1]}: median angular error "
               f"{np.median(e):.2e} deg (max {e.max():.2e}); max albedo error {da:.1e}")
@@ -61,7 +62,7 @@ def test_shadows_bias_least_squares_not_robust(shadowed):
     res = {}
     for m in ("ls", "robust"):
         nm = fsjax.ops.photometric_stereo(stack, method=m)
-        e = P.angular_error_deg(nm.normals, n)
+        e = synth.angular_error_deg(nm.normals, n)
         valid = np.asarray(nm.valid)
         res[m] = (np.median(e[shadowed_px & valid]), np.median(e[valid]), valid.mean())
         print(f"  {m}: median error on shadowed pixels {res[m][0]:.2e} deg, over all valid {res[m][1]:.2e} deg, "
@@ -97,7 +98,7 @@ def test_relight_from_recovered_normals(unshadowed, scene):
     nm = fsjax.ops.photometric_stereo(stack)
     az, el = 20.0, 68.0
     new = fsjax.ops.light_directions(el, az)[None]
-    ref, _ = P.render_light_stack(scene, new, shadows=False, **SIZE)
+    ref, _ = synth.render_light_stack(scene, new, shadows=False, **SIZE)
     got = fsjax.ops.relight(nm, azimuth_deg=az, elevation_deg=el).data
     rmse = float(jnp.sqrt(jnp.mean((got - ref.data[0]) ** 2)))
     null = float(jnp.sqrt(jnp.mean((stack.data[0] - ref.data[0]) ** 2)))
@@ -122,7 +123,7 @@ def test_frankot_chellappa_height_vs_truth(unshadowed):
 
 def test_highlight_breakdown_median_fails_at_half(unshadowed):
     stack, tr = unshadowed
-    r = P.highlight_breakdown(stack, np.asarray(tr["normals"]))
+    r = synth.highlight_breakdown(stack, np.asarray(tr["normals"]))
     rows = ", ".join(f"{f:.3f}: lmeds {a:.2g} ls {b:.2g}" for f, a, b in zip(r["fraction"], r["lmeds"], r["ls"]))
     print(f"median angular error (deg) vs fraction of highlight-contaminated lights: {rows}")
     K = len(r["fraction"]) - 1

@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 
 import fsjax
-from fsjax.ops.measure3d import _structured_light as SL
+from fsjax import ops as _ops
+from fsjax import synth
 
 
 @pytest.fixture(scope="module")
 def geom():
-    rig = SL.standard_rig()
-    return rig, SL.capture_geometry(SL.still_life_mm(), rig)
+    rig = synth.standard_rig()
+    return rig, synth.capture_geometry(synth.still_life_mm(), rig)
 
 
 def _rmse(z, truth, mask):
@@ -28,8 +29,8 @@ def test_depth_rmse_and_nulls(geom):
     lit = g["lit"]
     truth = g["depth"]
     span = np.nanmax(truth[g["hit"]]) - np.nanmin(truth[g["hit"]])
-    fr = SL.capture_patterns(g)
-    r = SL.decode_depth(fr, rig)
+    fr = synth.capture_patterns(g)
+    r = synth.decode_depth(fr, rig)
     P = fr["period_px"]
     order_err = int(np.sum(~(np.abs(r["column"][lit] - g["u_p"][lit]) < P / 2)))
     k1_true = np.floor((g["u_p"] + 0.5) / P)
@@ -55,9 +56,9 @@ def test_depth_rmse_and_nulls(geom):
 def test_gl_pose_used_as_opencv_gives_plausible_wrong_depths(geom):
     rig, g = geom
     lit = g["lit"]
-    fr = SL.capture_patterns(g)
-    wrong = SL.decode_depth(fr, SL.standard_rig(gl_trap=True))["depth"]
-    right = SL.decode_depth(fr, rig)["depth"]
+    fr = synth.capture_patterns(g)
+    wrong = synth.decode_depth(fr, synth.standard_rig(gl_trap=True))["depth"]
+    right = synth.decode_depth(fr, rig)["depth"]
     fin = np.isfinite(wrong) & lit
     plaus = fin & (wrong > 100.0) & (wrong < 2000.0)
     err = np.abs(wrong[plaus] - g["depth"][plaus])
@@ -74,8 +75,8 @@ def test_quarter_period_breakdown_of_unwrapping(geom):
     lit = g["lit"]
     res = {}
     for off in (0.0, 0.1, 0.2, 0.24, 0.26, 0.3):
-        fr = SL.capture_patterns(g, phase_offset_periods=off)
-        col = SL.decode_depth(fr, rig)["column"]
+        fr = synth.capture_patterns(g, phase_offset_periods=off)
+        col = synth.decode_depth(fr, rig)["column"]
         P = fr["period_px"]
         expected = g["u_p"] + off * P  # the phase error the offset makes, without an order jump
         res[off] = int(np.sum(~(np.abs(col[lit] - expected[lit]) < P / 2)))
