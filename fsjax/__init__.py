@@ -24,7 +24,7 @@ __version__ = "0.1.0"
 OP_PROVIDERS = ("fsjax.ops",)
 
 # subpackages / modules reachable as attributes
-_SUBMODULES = ("data", "fit", "ops", "render", "io", "synth", "evolve", "types", "registry", "pipeline")
+_SUBMODULES = ("data", "fit", "ops", "render", "io", "synth", "evolve", "fuzz", "types", "registry", "pipeline")
 # former module paths, still reachable as attributes (importing them warns: DeprecationWarning)
 _DEPRECATED_SUBMODULES = ("io3d", "io_splat")
 

@@ -31,6 +31,10 @@ IMAGE_KINDS: dict[str, tuple[float, tuple[int, int] | None]] = {
     "odd": (1.0, (3, 5)),
     "nan": (0.3, (16, 16)),      # all-NaN: must be refused at the door
 }
+try:  # scikit-image is not a core dependency: without it the pool has no photograph
+    import skimage as _skimage  # noqa: F401
+except ImportError:
+    del IMAGE_KINDS["photo"]
 SIZES: tuple[tuple[int, int], ...] = ((16, 16), (15, 17))
 DTYPES: tuple[str, ...] = ("float64", "float32")
 RASTER_KINDS = ("scene", "constant", "empty")  # other raster sorts (Color, Region, Labels, ...)
@@ -104,7 +108,11 @@ class Chain:
 
 def _photo(variant: int, size: tuple[int, int]):
     import numpy as np
-    from skimage import data as skdata
+
+    try:
+        from skimage import data as skdata
+    except ImportError:  # the pool drops "photo" without scikit-image; a replayed chain may still ask
+        raise RuntimeError("fsjax fuzz: the 'photo' input needs scikit-image (pip install scikit-image)") from None
 
     img = skdata.camera().astype(np.float64) / 255.0  # 512 x 512
     h, w = size
