@@ -9,6 +9,8 @@ non-maximum-suppression neighbourhood is incomplete), as in scikit-image.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -82,8 +84,12 @@ def _dilate8(e):
     return out
 
 
+@functools.partial(jax.jit, static_argnames="steps_per_check")
 def _hysteresis(strong, weak, steps_per_check: int = 4):
-    """Pixels of ``weak`` 8-connected (through ``weak``) to ``strong``: a fixed point."""
+    """Pixels of ``weak`` 8-connected (through ``weak``) to ``strong``: a fixed point.
+
+    Jitted at module level: a ``while_loop`` of fresh closures run eagerly would be compiled
+    again on every call."""
 
     def body(state):
         e, _ = state

@@ -34,8 +34,10 @@ Conventions:
 
 from __future__ import annotations
 
+import functools
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -532,7 +534,10 @@ def yen(img: Image, /, *, nbins: int = 256) -> Region:
     return _region_above(img, _yen_level(img, nbins))
 
 
+@functools.partial(jax.jit, static_argnames="max_iter")
 def _li_level(x, tolerance, max_iter: int):
+    # jitted at module level: the while_loop's closures would otherwise be compiled again on
+    # every eager call (tolerance None or a number: two programs, not one per call)
     v = x.reshape(-1)
     dt = v.dtype
     mn, mx = jnp.min(v), jnp.max(v)

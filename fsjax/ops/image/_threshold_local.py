@@ -14,6 +14,9 @@ point.
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -349,7 +352,13 @@ def hysteresis(img: Image, /, *, low: float = 0.3, high: float = 0.6,
     if connectivity not in (4, 8):
         raise ValueError(f"hysteresis: argument 'connectivity' must be 4 or 8, got {connectivity!r}")
     steps = check_static_int("hysteresis", "steps_per_check", steps_per_check, 1)
-    x = img.data
+    return Region(_hysteresis_core(img.data, low, high, connectivity, steps))
+
+
+@functools.partial(jax.jit, static_argnums=(3, 4))
+def _hysteresis_core(x, low, high, connectivity: int, steps: int):
+    # one compiled program per shape/dtype and static settings: a while_loop built from fresh
+    # closures outside jit would be traced and compiled again on every eager call
     lo = jnp.asarray(low, x.dtype)
     allowed = x > lo
     seed = allowed & (x > jnp.maximum(lo, jnp.asarray(high, x.dtype)))
@@ -362,5 +371,5 @@ def hysteresis(img: Image, /, *, low: float = 0.3, high: float = 0.6,
         return new, jnp.any(new != m)
 
     out, _ = lax.while_loop(lambda s: s[1], body, (seed, jnp.asarray(True)))
-    return Region(out)
+    return out
 
