@@ -27,6 +27,7 @@ are differentiable with respect to the camera's arrays and the points.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -220,30 +221,10 @@ class Undistorted(eqx.Module):
     iterations: jax.Array
 
 
-def undistort_normalized(dist, xy_distorted, *, max_iter: int = 30, tol=None) -> Undistorted:
-    """Invert :func:`distort_normalized` by Newton's method, per point.
-
-    Starts at the distorted point, iterates ``x <- x - J^-1 (d(x) - x_d)`` with the exact 2x2
-    Jacobian until the residual is below ``tol`` (default: ``1e-13`` in float64, i.e. below
-    1e-10 px for focal lengths up to 1000 px; ``1e-6`` in float32) or ``max_iter`` is reached.
-    A point whose residual stays above ``tol``, or whose root lies on a folded branch of the
-    distortion (negative radial factor or a Jacobian of negative determinant: outside the
-    region where the model is invertible), has ``converged=False`` and NaN coordinates.
-    Gradients flow through one extra Newton step at the solution (implicit function
-    theorem), so reverse mode works.
-
-    Example:
-        >>> d = jnp.asarray([-0.28, 0.07, 0.001, -0.0005, 0.0])
-        >>> xd = fsjax.render.distort_normalized(d, jnp.asarray([0.3, -0.2]))
-        >>> u = fsjax.render.undistort_normalized(d, xd)
-        >>> bool(u.converged), float(jnp.max(jnp.abs(u.xy - jnp.asarray([0.3, -0.2])))) < 1e-12
-        (True, True)
-    """
-    xd = jnp.asarray(xy_distorted)
-    dist = jnp.asarray(dist, dtype=xd.dtype)
-    if tol is None:
-        tol = 1e-13 if xd.dtype == jnp.float64 else 1e-6
-    flat = xd.reshape(-1, 2)
+@functools.partial(jax.jit, static_argnums=3)
+def _undistort_core(dist, flat, tol, max_iter: int):
+    # module-level jit: the Newton while_loop below is built from closures, which outside jit
+    # would be traced and compiled again on every eager call (found by the chain fuzzer)
 
     def one(target):
         f = lambda p: distort_normalized(dist, p) - target  # noqa: E731
@@ -276,7 +257,35 @@ def undistort_normalized(dist, xy_distorted, *, max_iter: int = 30, tol=None) ->
         ok = jnp.isfinite(r) & (r <= tol) & (jnp.linalg.det(J) > 0) & (radial > 0)
         return jnp.where(ok, p, jnp.nan), r, ok, i
 
-    p, r, ok, it = jax.vmap(one)(flat)
+    return jax.vmap(one)(flat)
+
+
+def undistort_normalized(dist, xy_distorted, *, max_iter: int = 30, tol=None) -> Undistorted:
+    """Invert :func:`distort_normalized` by Newton's method, per point.
+
+    Starts at the distorted point, iterates ``x <- x - J^-1 (d(x) - x_d)`` with the exact 2x2
+    Jacobian until the residual is below ``tol`` (default: ``1e-13`` in float64, i.e. below
+    1e-10 px for focal lengths up to 1000 px; ``1e-6`` in float32) or ``max_iter`` is reached.
+    A point whose residual stays above ``tol``, or whose root lies on a folded branch of the
+    distortion (negative radial factor or a Jacobian of negative determinant: outside the
+    region where the model is invertible), has ``converged=False`` and NaN coordinates.
+    Gradients flow through one extra Newton step at the solution (implicit function
+    theorem), so reverse mode works.
+
+    Example:
+        >>> d = jnp.asarray([-0.28, 0.07, 0.001, -0.0005, 0.0])
+        >>> xd = fsjax.render.distort_normalized(d, jnp.asarray([0.3, -0.2]))
+        >>> u = fsjax.render.undistort_normalized(d, xd)
+        >>> bool(u.converged), float(jnp.max(jnp.abs(u.xy - jnp.asarray([0.3, -0.2])))) < 1e-12
+        (True, True)
+    """
+    xd = jnp.asarray(xy_distorted)
+    dist = jnp.asarray(dist, dtype=xd.dtype)
+    if tol is None:
+        tol = 1e-13 if xd.dtype == jnp.float64 else 1e-6
+    flat = xd.reshape(-1, 2)
+    max_iter = check_static_int("undistort_normalized", "max_iter", max_iter, lo=0)
+    p, r, ok, it = _undistort_core(dist, flat, jnp.asarray(tol, xd.dtype), max_iter)
     lead = xd.shape[:-1]
     return Undistorted(p.reshape(xd.shape), r.reshape(lead), ok.reshape(lead), it.reshape(lead))
 

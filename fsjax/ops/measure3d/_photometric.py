@@ -26,6 +26,7 @@ P. J. Rousseeuw, "Least median of squares regression", JASA 79 (1984).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 
@@ -138,6 +139,46 @@ def _lmeds(L, meas, triplets, h):
     return b[best], jnp.isfinite(crit[best])
 
 
+@functools.partial(jax.jit, static_argnames="method")
+def _stereo_core(data, lights, shadow_threshold, method: str):
+    # module-level jit: the per-pixel solves are vmapped closures with loops, which run eagerly
+    # would be traced and compiled again on every call (found by the chain fuzzer)
+    K = data.shape[-3]
+    L = lights
+    dt = jnp.result_type(data.dtype, L.dtype)
+    L = L.astype(dt)
+    Hh, Ww = data.shape[-2:]
+    meas = jnp.moveaxis(data.astype(dt), 0, -1).reshape(-1, K)
+    thr = jnp.asarray(shadow_threshold, dt)
+
+    if method == "ls":
+        def one(i):
+            return _wls(L, i, jnp.ones(K, dt))
+    elif method == "lmeds":
+        trip = jnp.asarray(list(itertools.combinations(range(K), 3)), jnp.int32)
+        h = K // 2 + 1
+
+        def one(i):
+            return _lmeds(L, i, trip, h)
+    else:
+        def one(i):
+            lit = i > thr
+            n_lit = jnp.sum(lit)
+            b3, ok3 = _wls(L, i, lit.astype(dt))
+            b2, ok2 = _two_light_qp(L, i, lit, thr)
+            use3 = (n_lit >= 3) & ok3
+            use2 = (n_lit == 2) & ok2
+            return jnp.where(use3, b3, b2), use3 | use2
+
+    b, ok = jax.vmap(one)(meas)
+    rho = jnp.linalg.norm(b, axis=-1)
+    ok = ok & (rho > 0) & jnp.all(jnp.isfinite(b), axis=-1)
+    n = b / jnp.where(ok, rho, 1.0)[:, None]
+    n = jnp.where(ok[:, None], n, jnp.nan)
+    rho = jnp.where(ok, rho, jnp.nan)
+    return n.reshape(Hh, Ww, 3), rho.reshape(Hh, Ww), ok.reshape(Hh, Ww)
+
+
 @register(family="photometric", takes=LightStack, gives=NormalMap,
           knobs={"shadow_threshold": LinKnob(0.0, 0.2)},
           refs=["Woodham 1980", "Rousseeuw 1984 (LMedS)"])
@@ -191,39 +232,7 @@ def photometric_stereo(stack: LightStack, /, *, shadow_threshold: float = 0.02, 
     K = stack.data.shape[-3]
     if K < 3:
         raise ValueError(f"{op}: argument 'stack' needs at least 3 lights, got {K}")
-    L = stack.lights
-    dt = jnp.result_type(stack.data.dtype, L.dtype)
-    L = L.astype(dt)
-    Hh, Ww = stack.data.shape[-2:]
-    meas = jnp.moveaxis(stack.data.astype(dt), 0, -1).reshape(-1, K)
-    thr = jnp.asarray(shadow_threshold, dt)
-
-    if method == "ls":
-        def one(i):
-            return _wls(L, i, jnp.ones(K, dt))
-    elif method == "lmeds":
-        trip = jnp.asarray(list(itertools.combinations(range(K), 3)), jnp.int32)
-        h = K // 2 + 1
-
-        def one(i):
-            return _lmeds(L, i, trip, h)
-    else:
-        def one(i):
-            lit = i > thr
-            n_lit = jnp.sum(lit)
-            b3, ok3 = _wls(L, i, lit.astype(dt))
-            b2, ok2 = _two_light_qp(L, i, lit, thr)
-            use3 = (n_lit >= 3) & ok3
-            use2 = (n_lit == 2) & ok2
-            return jnp.where(use3, b3, b2), use3 | use2
-
-    b, ok = jax.vmap(one)(meas)
-    rho = jnp.linalg.norm(b, axis=-1)
-    ok = ok & (rho > 0) & jnp.all(jnp.isfinite(b), axis=-1)
-    n = b / jnp.where(ok, rho, 1.0)[:, None]
-    n = jnp.where(ok[:, None], n, jnp.nan)
-    rho = jnp.where(ok, rho, jnp.nan)
-    return NormalMap(n.reshape(Hh, Ww, 3), rho.reshape(Hh, Ww), ok.reshape(Hh, Ww))
+    return NormalMap(*_stereo_core(stack.data, stack.lights, shadow_threshold, method))
 
 
 @register(family="photometric", takes=NormalMap, gives=Image,

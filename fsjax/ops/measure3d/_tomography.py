@@ -31,6 +31,8 @@ Conventions (stated once for the family):
 
 from __future__ import annotations
 
+import functools
+
 import math
 
 import jax
@@ -167,7 +169,9 @@ def _fourier_filter(size: int, name: str, dtype) -> jnp.ndarray:
     return jnp.asarray(H, dtype=dtype)
 
 
+@functools.partial(jax.jit, static_argnums=(1, 3, 4))
 def _backproject(q: jnp.ndarray, n: int, angle_range_deg: float, out_size: int, circle: bool) -> jnp.ndarray:
+    # module-level jit: the scan's closure would otherwise be compiled again on every eager call
     n_det = q.shape[0]
     cd = n_det // 2
     co = out_size // 2

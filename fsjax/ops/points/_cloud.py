@@ -26,6 +26,8 @@ equal to ``scipy.spatial.cKDTree``), so ``k`` is at most 32.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -347,6 +349,23 @@ def radius_outlier_removal(pts: Points, /, *, radius: float = 0.1, min_neighbors
 # ---------------------------------------------------------------------------
 
 
+@functools.partial(jax.jit, static_argnums=2)
+def _fps_indices(xyz, valid, ns: int):
+    # module-level jit: the fori_loop's closure run eagerly would compile on every call
+    x0 = jnp.where(valid[:, None], xyz, 0.0)
+    start = jnp.argmax(valid).astype(jnp.int32)
+    d = jnp.where(valid, jnp.inf, -jnp.inf)
+
+    def body(i, carry):
+        sel, d, last = carry
+        sel = sel.at[i].set(last)
+        d = jnp.minimum(d, jnp.where(valid, jnp.sum((x0 - x0[last]) ** 2, axis=-1), -jnp.inf))
+        return sel, d, jnp.argmax(d).astype(jnp.int32)
+
+    sel, _, _ = lax.fori_loop(0, ns, body, (jnp.zeros((ns,), jnp.int32), d, start))
+    return sel
+
+
 @register(family="points", takes=Points, gives=Points, differentiable=False,
           refs=["Y. Eldar, M. Lindenbaum, M. Porat, Y. Y. Zeevi, The farthest point strategy for "
                 "progressive image sampling, IEEE TIP 6(9), 1997"])
@@ -384,17 +403,7 @@ def farthest_point_sample(pts: Points, /, *, n: int = 64) -> Points:
     ns = check_static_int(op, "n", n, lo=1)
     xyz = pts.xyz
     valid = _valid_mask(pts)
-    x0 = jnp.where(valid[:, None], xyz, 0.0)
-    start = jnp.argmax(valid).astype(jnp.int32)
-    d = jnp.where(valid, jnp.inf, -jnp.inf)
-
-    def body(i, carry):
-        sel, d, last = carry
-        sel = sel.at[i].set(last)
-        d = jnp.minimum(d, jnp.where(valid, jnp.sum((x0 - x0[last]) ** 2, axis=-1), -jnp.inf))
-        return sel, d, jnp.argmax(d).astype(jnp.int32)
-
-    sel, _, _ = lax.fori_loop(0, ns, body, (jnp.zeros((ns,), jnp.int32), d, start))
+    sel = _fps_indices(xyz, valid, ns)
     out_valid = jnp.arange(ns) < jnp.sum(valid)
 
     def take(f):

@@ -17,6 +17,8 @@ Conventions:
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jax import lax
@@ -35,6 +37,7 @@ __all__ = ["euclidean_cluster", "remove_ground", "cluster_centroids"]
 # ---------------------------------------------------------------------------
 
 
+@jax.jit
 def connected_components(idx, valid):
     """Component root (lowest index) of every node of the symmetrised graph ``idx`` ``(N, K)``.
 
@@ -151,6 +154,7 @@ def cluster_centroids(pts: Points, labels: PointLabels, capacity: int = 64):
 # ---------------------------------------------------------------------------
 
 
+@functools.partial(jax.jit, static_argnames=("n_hypotheses", "rounds"))
 def ground_plane(xyz, valid, threshold, max_slope_deg, n_hypotheses: int, seed: int, rounds: int = 3):
     """RANSAC plane among near-horizontal hypotheses; returns ``(plane (4,), ok)`` (``n_z > 0``)."""
     dt = xyz.dtype
