@@ -142,12 +142,24 @@ def _gauss_taps(sigma=1.5, radius=5):
     return w / w.sum()
 
 
-def _valid_blur(x, taps):
-    """Separable valid-mode filtering of ``(..., H, W)`` by shift-and-add."""
+def _valid_blur_matrix(n_in: int, taps) -> np.ndarray:
+    """``(n_in - len(taps) + 1, n_in)`` banded matrix of valid-mode correlation with ``taps``."""
     n = len(taps)
+    M = np.zeros((n_in - n + 1, n_in))
+    for k in range(n):
+        M[np.arange(n_in - n + 1), np.arange(n_in - n + 1) + k] = taps[k]
+    return M
+
+
+def _valid_blur(x, taps):
+    """Separable valid-mode filtering of ``(..., H, W)``: two products with banded matrices.
+
+    On XLA:CPU this is ~100x faster than shift-and-add of 2 x 11 slices (whose gradient is 22
+    pads), and compiles in a fraction of the time; the sums are the same up to rounding order."""
     H, W = x.shape[-2], x.shape[-1]
-    y = sum(float(taps[k]) * x[..., k: H - n + 1 + k, :] for k in range(n))
-    return sum(float(taps[k]) * y[..., :, k: W - n + 1 + k] for k in range(n))
+    Mh = jnp.asarray(_valid_blur_matrix(H, taps), x.dtype)
+    Mw = jnp.asarray(_valid_blur_matrix(W, taps), x.dtype)
+    return jnp.einsum("ih,...hw,jw->...ij", Mh, x, Mw)
 
 
 def ssim_color(a, b, *, data_range: float = 1.0):
@@ -168,10 +180,10 @@ def ssim_color(a, b, *, data_range: float = 1.0):
     b = jnp.moveaxis(jnp.asarray(b), -1, 0)
     t = _gauss_taps()
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    ma, mb = _valid_blur(a, t), _valid_blur(b, t)
-    saa = _valid_blur(a * a, t) - ma * ma
-    sbb = _valid_blur(b * b, t) - mb * mb
-    sab = _valid_blur(a * b, t) - ma * mb
+    ma, mb, eaa, ebb, eab = _valid_blur(jnp.stack([a, b, a * a, b * b, a * b]), t)
+    saa = eaa - ma * ma
+    sbb = ebb - mb * mb
+    sab = eab - ma * mb
     s = ((2 * ma * mb + c1) * (2 * sab + c2)) / ((ma * ma + mb * mb + c1) * (saa + sbb + c2))
     return jnp.mean(s)
 
