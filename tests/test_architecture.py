@@ -44,7 +44,8 @@ ALLOWED: dict[str, set[str]] = {
              "io", "evolve", "_cache", "fsjax"},
     "io3d": {"io"},  # deprecated shims of fsjax.io.mesh / fsjax.io.splat, gone next release
     "io_splat": {"io"},
-    "cli": {"fsjax", "_cache", "tour", "evolve", "io", "fuzz", "registry", "types", "pipeline"},
+    "sfm": {"types", "_checks", "_linalg", "registry", "render", "ops", "fit", "data", "io"},
+    "cli": {"fsjax", "_cache", "tour", "evolve", "io", "fuzz", "registry", "types", "pipeline", "sfm"},
 }
 
 
