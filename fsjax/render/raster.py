@@ -275,7 +275,7 @@ def _search_fragments(boxes, H, W, B, K, Cj, Nn, Dt, near, fdt):
     k = wx * wy
     # prefix sums in floating point: exact below 2^24 (float32) / 2^53 (float64) candidates and free of
     # int32 wrap-around for absurd demands
-    endf = jax.lax.associative_scan(jnp.add, k.astype(fdt))
+    endf = jnp.cumsum(k.astype(fdt))
     total = endf[-1]
     start = jnp.minimum(endf - k, B).astype(jnp.int32)
     p = jnp.arange(B, dtype=jnp.int32)
@@ -304,7 +304,7 @@ def _search_fragments(boxes, H, W, B, K, Cj, Nn, Dt, near, fdt):
     one = cut.astype(jnp.int32)
     diff = jnp.zeros((H + 1, W + 1), jnp.int32)
     diff = diff.at[y0, x0].add(one).at[y0, x1 + 1].add(-one).at[y1 + 1, x0].add(-one).at[y1 + 1, x1 + 1].add(one)
-    lost = jax.lax.associative_scan(jnp.add, jax.lax.associative_scan(jnp.add, diff, axis=0), axis=1)[:H, :W] > 0
+    lost = jnp.cumsum(jnp.cumsum(diff, axis=0), axis=1)[:H, :W] > 0
     return fid, total, lost
 
 

@@ -371,11 +371,13 @@ def _bucket(n: int) -> int:
 def _slot_owner(start, k, B):
     """Segment holding each slot ``p < B`` of a buffer filled segment after segment (segment ``i``
     occupies ``[start_i, start_i + k_i)``): a scatter of the non-empty segments' indices at their
-    starts and a max-scan. O(B log B) in ``log B`` vector passes; a per-slot binary search
-    (``searchsorted``) measured ~40x slower on XLA:CPU for B = 2^19."""
+    starts and a running maximum. A per-slot binary search (``searchsorted``) measured ~40x slower
+    on XLA:CPU for B = 2^19; ``lax.cummax`` runs ~4x slower than ``lax.associative_scan`` there
+    (~7 ms at 2^19) but compiles in a quarter of the time (0.2 s vs 0.9 s of CPU per scan), and
+    compile time is the larger cost at these sizes."""
     at = jnp.where((k > 0) & (start < B), start, B)
     owner = jnp.zeros((B,), jnp.int32).at[at].max(jnp.arange(k.shape[0], dtype=jnp.int32), mode="drop")
-    return jax.lax.associative_scan(jnp.maximum, owner)
+    return jax.lax.cummax(owner)
 
 
 def _tile_boxes(proj, H, W, T):
@@ -522,7 +524,7 @@ def _render_tiled(gaussians, camera, background, near, dilation_px2, alpha_min, 
     # pairs emitted in depth order (the buffer keeps the nearest B), then one stable sort by tile
     order = jnp.argsort(jnp.where(on, jax.lax.stop_gradient(proj.depth), jnp.inf)).astype(jnp.int32)
     ko = k[order]
-    end = jax.lax.associative_scan(jnp.add, ko)
+    end = jnp.cumsum(ko)
     total = end[-1]
     p = jnp.arange(B, dtype=jnp.int32)
     s = _slot_owner(end - ko, ko, B)
