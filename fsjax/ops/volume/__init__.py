@@ -3,8 +3,9 @@
 Families and their private modules: ``filters3d`` (_filters3d: Gaussian, box, median,
 Sobel gradient magnitude, Laplacian of Gaussian), ``morphology3d`` (_morphology3d),
 ``label3d`` (_label3d: connected components and region properties), ``distance3d``
-(_distance3d: exact anisotropic Euclidean distance transform) and ``project3d``
-(_project3d: maximum / mean projections along an axis).
+(_distance3d: exact anisotropic Euclidean distance transform), ``project3d``
+(_project3d: maximum / mean projections along an axis) and ``isosurface`` (_isosurface:
+marching cubes, ``Volume -> Mesh``).
 
 Axes are ``(z, y, x)``; ``Volume.spacing`` is ``(dz, dy, dx)`` in ``Volume.unit``.
 The public path of every op is ``fsjax.ops.<name>``; this package exports nothing
