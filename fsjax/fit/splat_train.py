@@ -252,7 +252,8 @@ class SplatTrainResult(FitResult):
     """Trained ``gaussians``; per-step ``loss``; ``n_splats`` after each densification;
     ``overflow`` per step (splat-tile pairs dropped); ``step_seconds`` median wall time of a
     step (steps that compiled excluded); ``compile_seconds`` (first step plus every step that
-    grew the pair buffer); ``converged`` (the optimiser's Cauchy test never fires in a
+    grew the pair buffer), and ``compile_cpu_seconds`` the process CPU time of those steps (less
+    sensitive to other load on the machine than the wall time); ``converged`` (the optimiser's Cauchy test never fires in a
     fixed-length run, so this reports whether the final loss is finite); ``pairs`` the
     rasteriser's (splat, tile) pair demand per step; ``max_pairs`` the final buffer size.
 
@@ -270,6 +271,7 @@ class SplatTrainResult(FitResult):
     converged: bool
     pairs: np.ndarray = None
     max_pairs: int = 0
+    compile_cpu_seconds: float = float("nan")
 
     @property
     def reason(self):
@@ -286,15 +288,17 @@ _FIELDS = ("means", "log_scales", "quats", "opacity_logits", "colors")
 def _loss_fn(y, args):
     img, cam, valid, bg, lam, dist_w, dist_norm, tile, max_pairs, chunk = args
     g = Gaussians(y["means"], y["log_scales"], y["quats"], y["opacity_logits"], y["colors"], valid=valid)
+    use_dist = not (isinstance(dist_w, (int, float)) and dist_w == 0)
     out = render_splats(g, cam, tile_size=tile, max_pairs=max_pairs, chunk=chunk, background=bg,
-                        uv_offset=y["uv_offset"])
+                        uv_offset=y["uv_offset"], distortion=use_dist)
     l1 = jnp.mean(jnp.abs(out.color - img))
     loss = (1 - lam) * l1 + lam * (1 - ssim_color(out.color, img))
-    d = out.distortion
-    if dist_norm:
-        has = out.alpha > 1e-3
-        d = jnp.where(has, d / jnp.where(has, out.alpha**2, 1.0), 0.0)
-    loss = loss + dist_w * jnp.mean(d)
+    if use_dist:
+        d = out.distortion
+        if dist_norm:
+            has = out.alpha > 1e-3
+            d = jnp.where(has, d / jnp.where(has, out.alpha**2, 1.0), 0.0)
+        loss = loss + dist_w * jnp.mean(d)
     return loss, (out.projected.visible, out.overflow, out.pairs)
 
 
@@ -390,9 +394,10 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     if progress:
         from tqdm.auto import tqdm
         it = tqdm(it, desc="splat train", leave=False)
-    compile_s = 0.0
+    compile_s = compile_cpu = 0.0
     for s in it:
         t0 = time.perf_counter()
+        c0 = time.process_time()
         fresh = s == 0
         while True:
             y1, state1, (vis, ov, npairs), f = step(y, state, jnp.asarray(order[s]), jnp.asarray(valid), B)
@@ -406,6 +411,7 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
         dt_s = time.perf_counter() - t0
         if fresh:
             compile_s += dt_s
+            compile_cpu += time.process_time() - c0
         else:
             times.append(dt_s)
         demand.append(int(npairs))
@@ -427,7 +433,7 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     return SplatTrainResult(gaussians=gfin, loss=np.asarray(losses), n_splats=np.asarray(counts, int),
                             overflow=np.asarray(overflows), step_seconds=float(np.median(times)) if times else
                             float("nan"), compile_seconds=compile_s, converged=bool(np.isfinite(losses[-1])),
-                            pairs=np.asarray(demand), max_pairs=B)
+                            pairs=np.asarray(demand), max_pairs=B, compile_cpu_seconds=compile_cpu)
 
 
 class _GroupedAdamState(eqx.Module):
