@@ -70,6 +70,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_choice, check_range, check_static_int, is_concrete
 from ..ops import knn
+from ..ops.points._cloud import smallest_eigvec3
 from ..ops.points._search import (
     _BRUTE_LIMIT,
     GridIndex,
@@ -115,9 +116,9 @@ def _neighbour_cov(xyz, valid, k: int, index=None):
 
 
 def _gicp_cov(cov, eps: float = 1e-3):
-    _, vec = jnp.linalg.eigh(cov)
-    lam = jnp.asarray([eps, 1.0, 1.0], cov.dtype)
-    return jnp.einsum("nij,j,nkj->nik", vec, lam, vec)
+    """``U diag(eps, 1, 1) U^T = I - (1 - eps) n n^T`` (``n`` the smallest eigenvector, closed form)."""
+    n = smallest_eigvec3(cov)
+    return jnp.eye(3, dtype=cov.dtype) - (1 - eps) * n[:, :, None] * n[:, None, :]
 
 
 def _cov_from_idx(xyz, idx):
@@ -145,8 +146,7 @@ def _estimate_normals(xyz, valid=None, *, k: int = 10, index: GridIndex | None =
     xyz = jnp.asarray(xyz)
     valid = jnp.ones(xyz.shape[0], bool) if valid is None else jnp.asarray(valid, bool)
     cov, cnt = _neighbour_cov(xyz, valid, k, index)
-    _, vec = jnp.linalg.eigh(cov)
-    return jnp.where((cnt >= 3)[:, None], vec[..., 0], jnp.nan)
+    return jnp.where((cnt >= 3)[:, None], smallest_eigvec3(cov), jnp.nan)
 
 
 def local_covariances(xyz, valid=None, *, k: int = 20, eps: float = 1e-3, index: GridIndex | None = None):
@@ -331,14 +331,14 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         refs = _brute_refs(tgt, tv)
         bsz = _brute_batch(src.shape[0], tgt.shape[0])
 
-        def nearest(x, k):
+        def nearest(x, k, approx=None):  # exact always (small problems)
             d2, idx, _ = _batched(lambda q: _brute_queries(refs, q, k), (x,), bsz)
             return idx, d2
     else:
         index = build_index(tgt, tv, k=10, coarse=True)
 
-        def nearest(x, k):
-            return query_knn(index, x, k)
+        def nearest(x, k, approx=None):
+            return query_knn(index, x, k, approx=approx)
     # one k-NN pass over the target itself: spacing (column 1), normals or covariances
     k_self = {"point_to_point": 2, "point_to_plane": 2 if has_normals else max(2, normal_k),
               "gicp": max(2, cov_k)}[method]
@@ -353,16 +353,16 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             tn = tnormals
         else:
             cov, cnt = _cov_from_idx(tgt, idx_t[:, :normal_k])
-            tn = jnp.where((cnt >= 3)[:, None], jnp.linalg.eigh(cov)[1][..., 0], 0.0)
+            tn = jnp.where((cnt >= 3)[:, None], smallest_eigvec3(cov), 0.0)
         tn = jnp.where(jnp.isfinite(tn), tn, 0.0)
     if method == "gicp":
         ct = _gicp_cov(_cov_from_idx(tgt, idx_t[:, :cov_k])[0])
         cs = local_covariances(src, sv, k=cov_k)
     n_src = src.shape[0]
 
-    def correspond(r, t):
+    def correspond(r, t, approx):
         p = src @ r.T + t
-        idx, d2 = nearest(p, 1)
+        idx, d2 = nearest(p, 1, approx)
         j, d2 = idx[:, 0], d2[:, 0]
         ok = sv & (j >= 0) & (d2 <= max_corr**2)
 
@@ -399,21 +399,26 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     # one nearest-neighbour pass per loop turn: the turn after the last step only evaluates the
     # returned pose (rmse, fitness), so the search is compiled once
     def cond(st):
-        return ~st[-1]
+        return ~st[-2]
 
+    # two phases on the grid: approximate correspondences (a far source point may get the nearest
+    # target point of the first cell block holding one, see query_knn) until the increment is
+    # small, then exact ones until it is small again; the returned pose, rms_len and fitness all
+    # come from exact correspondences (the evaluation turn is exact)
     def body(st):
-        it, r, t, done, bad, n_ok, _, _, _ = st
-        p, j, d2, ok = correspond(r, t)
+        it, r, t, done, bad, n_ok, _, _, stop, exact = st
         stop = done | (bad != OK) | (it >= max_iterations)
+        p, j, d2, ok = correspond(r, t, ~exact & ~stop)
         r2, t2, small, bad2, n2 = step(r, t, p, j, ok)
         upd = ~stop & (bad2 == OK)
         return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
-                jnp.where(stop, done, small), jnp.where(stop, bad, bad2.astype(jnp.int32)),
-                jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2, ok, stop)
+                jnp.where(stop, done, small & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
+                jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2, ok, stop, exact | small)
 
     z = jnp.zeros(n_src, dtype)
-    init = (jnp.int32(0), r0, t0, ~input_ok, input_reason.astype(jnp.int32), jnp.int32(0), z, sv, jnp.bool_(False))
-    it, r, t, done, bad, n_ok, d2a, ok, _ = jax.lax.while_loop(cond, body, init)
+    init = (jnp.int32(0), r0, t0, ~input_ok, input_reason.astype(jnp.int32), jnp.int32(0), z, sv, jnp.bool_(False),
+            jnp.bool_(brute))
+    it, r, t, done, bad, n_ok, d2a, ok, _, _ = jax.lax.while_loop(cond, body, init)
     n_fin = jnp.sum(ok)
     rmse = jnp.sqrt(jnp.sum(jnp.where(ok, d2a, 0.0)) / jnp.maximum(n_fin, 1)) * scale
     inl = jnp.sum(sv & (d2a <= inlier_dist**2)) / jnp.maximum(ns, 1)
