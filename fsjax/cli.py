@@ -17,7 +17,11 @@
     the chain fuzzer (:mod:`fsjax.fuzz`): random typed chains run eager, under jit, vmap
     and grad; failures classified and minimised into ``DIR/report.md`` and JSON lines.
 
-``tour``, ``run`` and ``evolve`` keep compiled programs in JAX's persistent compilation
+``fsjax sfm IMAGE_DIR --out DIR [--intrinsics fx,fy,cx,cy] [--ground-truth cameras.json]``
+    structure from motion (:mod:`fsjax.sfm`): ``DIR/report.md``, ``DIR/sparse/*.txt`` (COLMAP
+    text), ``DIR/points.ply``.
+
+``tour``, ``run``, ``evolve`` and ``sfm`` keep compiled programs in JAX's persistent compilation
 cache (``fsjax.enable_compile_cache``: the user's cache directory, ``FSJAX_CACHE_DIR``
 overrides it, ``FSJAX_CACHE_DIR=off`` disables it), so a second run skips compilation.
 """
@@ -247,6 +251,19 @@ def _cmd_fuzz(args) -> int:
     return cli_main(args)
 
 
+def _cmd_sfm(args) -> int:
+    from .sfm.run import run_folder
+
+    intr = None
+    if args.intrinsics:
+        intr = [float(v) for v in args.intrinsics.split(",")]
+        if len(intr) != 4:
+            raise ValueError(f"argument '--intrinsics' must be fx,fy,cx,cy, got {args.intrinsics!r}")
+    rec = run_folder(args.image_dir, args.out, intrinsics=intr, ground_truth=args.ground_truth,
+                     n_max=args.max_features, n_octaves=args.octaves, log=print)
+    return 0 if rec.registered.sum() >= 2 else 1
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fsjax", description="Typed, jit-compiled vision operators in JAX.")
     sub = parser.add_subparsers(dest="cmd", required=True)
@@ -298,8 +315,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="output directory (report.md, failures.jsonl, minimised.jsonl)")
     p.set_defaults(func=_cmd_fuzz)
 
+    p = sub.add_parser("sfm", help="structure from motion on a folder of photographs; DIR/report.md, COLMAP text, PLY")
+    p.add_argument("image_dir")
+    p.add_argument("--out", required=True)
+    p.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (pixel centres on integers); default: guessed")
+    p.add_argument("--ground-truth", help="cameras.json to score against (as in ../shared/data/sfm)")
+    p.add_argument("--max-features", type=int, default=4096, help="keypoint capacity per image")
+    p.add_argument("--octaves", type=int, default=5, help="detector octaves (the first at twice the image size)")
+    p.set_defaults(func=_cmd_sfm)
+
     args = parser.parse_args(argv)
-    if args.cmd in ("tour", "run", "evolve"):
+    if args.cmd in ("tour", "run", "evolve", "sfm"):
         # compiled programs persist across runs (FSJAX_CACHE_DIR overrides, =off disables)
         from ._cache import enable_compile_cache
 

@@ -29,22 +29,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-__all__ = ["so3_exp", "bundle_adjust_masked"]
+from ..fit.rigid import so3_exp
 
-
-def so3_exp(w):
-    """Rotation matrix of a rotation vector (Rodrigues), NaN-safe at 0 (Taylor branch)."""
-    th2 = jnp.sum(w * w, -1)[..., None, None]
-    small = th2 < 1e-12
-    th2s = jnp.where(small, 1.0, th2)
-    th = jnp.sqrt(th2s)
-    a = jnp.where(small, 1.0 - th2 / 6.0, jnp.sin(th) / th)
-    b = jnp.where(small, 0.5 - th2 / 24.0, (1.0 - jnp.cos(th)) / th2s)
-    z = jnp.zeros_like(w[..., 0])
-    Wx = jnp.stack([jnp.stack([z, -w[..., 2], w[..., 1]], -1), jnp.stack([w[..., 2], z, -w[..., 0]], -1),
-                    jnp.stack([-w[..., 1], w[..., 0], z], -1)], -2)
-    eye = jnp.eye(3, dtype=w.dtype)
-    return eye + a * Wx + b * (Wx @ Wx)
+__all__ = ["bundle_adjust_masked"]
 
 
 def _project(K, R, t, X):
