@@ -37,7 +37,8 @@ _NAMES = {
     **{n: ".types" for n in ("HSV", "Camera", "Color", "Contour", "Depth", "Edges1D", "Feature", "Fit",
                              "Gaussians", "Image", "Lab", "Labels", "Match", "Mesh", "Points", "Region",
                              "RegionProps", "Signal", "Sort", "Volume", "LabelVolume", "LightStack", "NormalMap",
-                             "FringeStack", "GrayStack", "PointValues", "PointLabels", "StructuredLightRig")},
+                             "FringeStack", "GrayStack", "PointValues", "PointLabels", "StructuredLightRig",
+                             "MeshTopology")},
 }
 
 __all__ = sorted(_NAMES) + list(_SUBMODULES)
@@ -110,6 +111,7 @@ if TYPE_CHECKING:  # static analysers see the eager imports
     from .types import LabelVolume as LabelVolume
     from .types import Match as Match
     from .types import Mesh as Mesh
+    from .types import MeshTopology as MeshTopology
     from .types import Points as Points
     from .types import Region as Region
     from .types import RegionProps as RegionProps

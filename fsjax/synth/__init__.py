@@ -28,6 +28,7 @@ from ._photometric import highlight_breakdown as highlight_breakdown
 from ._photometric import overhead_view as overhead_view
 from ._photometric import render_light_stack as render_light_stack
 from ._photometric import still_life_scene as still_life_scene
+from ._pool import icosphere as icosphere
 from ._pool import register_pool as register_pool
 from ._pool import standard_input as standard_input
 from ._pool import standard_scene as standard_scene

@@ -28,6 +28,7 @@ from ..types import (
     LabelVolume,
     LightStack,
     Mesh,
+    MeshTopology,
     NormalMap,
     PointLabels,
     Points,
@@ -222,6 +223,14 @@ def _mesh(variant, size):
     v, f = icosphere(1)
     v = v * np.array([1.0 + 0.3 * variant, 1.0, 1.0])
     return Mesh(jnp.asarray(v), jnp.asarray(f))
+
+
+@register_pool(MeshTopology)
+def _mesh_topology(variant, size):
+    """The counts of an icosphere (variant 1: with one face dropped, three boundary edges)."""
+    if variant == 0:
+        return MeshTopology(42, 80, 120, 0, 0, 0, 1, 2)
+    return MeshTopology(42, 79, 120, 3, 0, 0, 1, 1)
 
 
 @register_pool(Volume)

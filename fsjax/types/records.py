@@ -11,7 +11,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._base import Sort, _as_array
 
-__all__ = ["Feature", "Match", "RegionProps", "NamedParams", "Fit", "Edges1D"]
+__all__ = ["Feature", "Match", "RegionProps", "NamedParams", "Fit", "Edges1D", "MeshTopology"]
 
 
 class NamedParams(eqx.Module):
@@ -213,3 +213,51 @@ class Edges1D(Sort):
     @property
     def batch_shape(self) -> tuple[int, ...]:
         return tuple(self.pos.shape[:-1])
+
+
+class MeshTopology(Sort):
+    """Counts that say whether a triangle mesh is a closed, consistently oriented surface.
+
+    Per mesh (shape ``(*batch,)``, int32): ``vertices`` (used by a valid face), ``faces``
+    (valid), ``edges`` (distinct undirected), ``boundary_edges`` (used by one face),
+    ``nonmanifold_edges`` (used by three or more), ``flipped_edges`` (used by two faces in the
+    same direction: a winding flip between them), ``components`` (connected through shared
+    vertices) and ``euler`` (``V - E + F``; 2 per closed genus-0 component).
+    ``closed`` / ``oriented`` / ``manifold`` read them as booleans.
+    """
+
+    vertices: Int[Array, "*batch"]
+    faces: Int[Array, "*batch"]
+    edges: Int[Array, "*batch"]
+    boundary_edges: Int[Array, "*batch"]
+    nonmanifold_edges: Int[Array, "*batch"]
+    flipped_edges: Int[Array, "*batch"]
+    components: Int[Array, "*batch"]
+    euler: Int[Array, "*batch"]
+    _float_fields = ()
+
+    def __init__(self, vertices: Any, faces: Any, edges: Any, boundary_edges: Any, nonmanifold_edges: Any,
+                 flipped_edges: Any, components: Any, euler: Any):
+        for name, v in (("vertices", vertices), ("faces", faces), ("edges", edges),
+                        ("boundary_edges", boundary_edges), ("nonmanifold_edges", nonmanifold_edges),
+                        ("flipped_edges", flipped_edges), ("components", components), ("euler", euler)):
+            setattr(self, name, _as_array(v, sort="MeshTopology", field=name, kind="int", min_ndim=0))
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.faces.shape)
+
+    @property
+    def manifold(self) -> Array:
+        """Every edge used by at most two faces."""
+        return self.nonmanifold_edges == 0
+
+    @property
+    def closed(self) -> Array:
+        """Every edge used by exactly two faces (a watertight surface)."""
+        return (self.boundary_edges == 0) & (self.nonmanifold_edges == 0)
+
+    @property
+    def oriented(self) -> Array:
+        """No two faces traverse a shared edge in the same direction."""
+        return self.flipped_edges == 0
