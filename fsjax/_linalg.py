@@ -28,10 +28,12 @@ from __future__ import annotations
 
 from typing import Any
 
+import equinox as eqx
 import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import optimistix as optx
 from lineax._solver.misc import (  # the helpers lineax's own dense solvers use
     pack_structures,
     ravel_vector,
@@ -39,7 +41,7 @@ from lineax._solver.misc import (  # the helpers lineax's own dense solvers use
     unravel_solution,
 )
 
-__all__ = ["eigh_small", "solve_spd_eig", "solve_small", "lstsq_small", "SmallQR"]
+__all__ = ["eigh_small", "solve_spd_eig", "solve_small", "lstsq_small", "SmallQR", "levenberg_marquardt"]
 
 
 def _sweeps(n: int) -> int:
@@ -222,3 +224,30 @@ class SmallQR(lx.AbstractLinearSolver):
 
     def assume_full_rank(self):
         return True
+
+
+class _TrustRegionInDtype(optx.ClassicalTrustRegion):
+    """optimistix's trust region with its step size in the dtype of ``y``.
+
+    The stock one starts from ``jnp.array(1.0)``: float64 whenever x64 is on, which makes
+    Levenberg-Marquardt's damping rows float64 beside float32 residuals, and lineax then
+    refuses the solve with a raw ``ValueError`` ("Vector and operator structures do not
+    match") for float32 data.
+    """
+
+    def init(self, y, f_info_struct):
+        state = super().init(y, f_info_struct)
+        dt = jnp.result_type(*jax.tree_util.tree_leaves(y))
+        return eqx.tree_at(lambda s: s.step_size, state, state.step_size.astype(dt))
+
+
+def levenberg_marquardt(rtol, atol, *, linear_solver=None):
+    """``optimistix.LevenbergMarquardt`` that keeps the dtype of its parameters.
+
+    Float32 data stays float32 whether or not x64 is enabled (the stock solver fails on
+    float32 parameters with x64 on; see :class:`_TrustRegionInDtype`). Every
+    Levenberg-Marquardt fit of the library builds its solver here.
+    """
+    kw = {} if linear_solver is None else {"linear_solver": linear_solver}
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, **kw)
+    return eqx.tree_at(lambda s: s.search, solver, _TrustRegionInDtype())

@@ -43,6 +43,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from .._linalg import levenberg_marquardt
 from ..render.camera import project
 from ..types import Camera
 from ..types.results import FitResult, reason_code, renamed
@@ -361,5 +362,5 @@ def _solve_and_std(y0, args, max_steps, rtol, atol, keep):
 
 @eqx.filter_jit
 def _solve(y0, args, max_steps, rtol, atol):
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    solver = levenberg_marquardt(rtol, atol)
     return optx.least_squares(_residuals, solver, y0, args, max_steps=max_steps, throw=False)

@@ -32,6 +32,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_positive, check_static_int
+from .._linalg import levenberg_marquardt
 from ..render.camera import project
 from ..types import Camera
 from ..types.results import FitResult, Legacy, deprecated_name, reason_code
@@ -153,7 +154,7 @@ def _resid(y, args):
 
 
 def _refine(R0, t0, X, uv, w, K, dist, max_steps):
-    sol = optx.least_squares(_resid, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
+    sol = optx.least_squares(_resid, levenberg_marquardt(1e-10, 1e-12),
                              jnp.concatenate([jnp.zeros(3, X.dtype), t0]), (R0, X, uv, w, K, dist),
                              max_steps=max_steps, throw=False)
     R = rodrigues(sol.value[:3]) @ R0

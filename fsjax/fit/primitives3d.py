@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from .._linalg import SmallQR, eigh_small, solve_small, solve_spd_eig
+from .._linalg import SmallQR, eigh_small, levenberg_marquardt, solve_small, solve_spd_eig
 from ..types import NamedParams
 from ..types.results import FitResult, deprecated_name, reason_code, renamed
 
@@ -149,7 +149,7 @@ def _tols(dt):
 
 def _lm(fn, y0, args, max_steps):
     rtol, atol = _tols(y0.dtype)
-    sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=SmallQR()), y0, args=args,
+    sol = optx.least_squares(fn, levenberg_marquardt(rtol, atol, linear_solver=SmallQR()), y0, args=args,
                              max_steps=max_steps, throw=False)
     return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 

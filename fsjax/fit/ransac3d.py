@@ -58,6 +58,7 @@ from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_choice, check_positive, check_range, check_static_int
+from .._linalg import levenberg_marquardt
 from ..ops import estimate_normals
 from ..types import NamedParams, Points
 from ..types.results import FitResult, Legacy, deprecated_name, renamed
@@ -238,7 +239,7 @@ def _sphere_refit(q, xyz, w, thr, max_steps):
     y0 = jnp.concatenate([s[:3] + m, jnp.sqrt(jnp.maximum(r2, 0.0))[None]])
     y0 = jnp.where(ok0 & (r2 > 0), y0, q)
     rtol, atol = _tols(xyz.dtype)
-    sol = optx.least_squares(_sphere_resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), y0, args=(xyz, w),
+    sol = optx.least_squares(_sphere_resid, levenberg_marquardt(rtol, atol), y0, args=(xyz, w),
                              max_steps=max_steps, throw=False)
     y = sol.value
     ok = (sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(y))
@@ -288,7 +289,7 @@ def _cyl_refit(q, xyz, w, thr, max_steps):
     e1, e2 = _perp_basis(a0)
     y0 = jnp.array([0.0, 0.0, 0.0, 0.0, 1.0], xyz.dtype) * r0
     rtol, atol = _tols(xyz.dtype)
-    sol = optx.least_squares(_cyl_resid, optx.LevenbergMarquardt(rtol=rtol, atol=atol), y0,
+    sol = optx.least_squares(_cyl_resid, levenberg_marquardt(rtol, atol), y0,
                              args=(xyz, w, c0, e1, e2, a0), max_steps=max_steps, throw=False)
     y = sol.value
     a, oka = _unit(a0 + y[0] * e1 + y[1] * e2)

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from .._linalg import levenberg_marquardt
 from ..render.camera import undistort_normalized
 from ..types.results import FitResult, Legacy, deprecated_name, reason_code
 from .calibrate import rodrigues
@@ -371,7 +372,7 @@ def _relative_pose(key, uv1, uv2, K1, K2, dist1, dist2, thr, n_hyp, min_par):
     b = jnp.argmax(counts)
     R0, t0 = Rs[b], ts[b]
     # gold-standard refinement of (R, t) on the inliers' Sampson distances (optimistix LM)
-    sol = optx.least_squares(_sampson_resid, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
+    sol = optx.least_squares(_sampson_resid, levenberg_marquardt(1e-10, 1e-12),
                              jnp.concatenate([jnp.zeros(3, dt), t0]), (R0, u1, u2, w, K1, K2),
                              max_steps=50, throw=False)
     Rr, tr = _pose_from(sol.value, R0)

@@ -41,12 +41,12 @@ from __future__ import annotations
 
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
 
 from ..._checks import check_positive, check_static_int
+from ..._linalg import levenberg_marquardt
 from ...registry import LinKnob, register
 from ...types import Contour, Fit
 
@@ -83,24 +83,9 @@ def _wrap_deg(theta_rad):
     return jnp.where(d <= -90.0, d + 180.0, d)
 
 
-class _TrustRegionInDtype(optx.ClassicalTrustRegion):
-    """optimistix's trust region with its step size in the dtype of ``y``.
-
-    The stock one starts from ``jnp.array(1.0)``: float64 when x64 is on, which makes
-    Levenberg-Marquardt's damping rows float64 beside float32 residuals, and lineax refuses
-    the solve ("Vector and operator structures do not match") for float32 contours.
-    """
-
-    def init(self, y, f_info_struct):
-        state = super().init(y, f_info_struct)
-        dt = jnp.result_type(*jax.tree_util.tree_leaves(y))
-        return eqx.tree_at(lambda s: s.step_size, state, state.step_size.astype(dt))
-
-
 def _lm(rtol, atol):
     """Levenberg-Marquardt that keeps the dtype of its parameters (float32 stays float32)."""
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    return eqx.tree_at(lambda s: s.search, solver, _TrustRegionInDtype())
+    return levenberg_marquardt(rtol, atol)
 
 
 def _tols(dtype):
