@@ -24,7 +24,9 @@ values: a stage whose live knob is out of range runs on the clipped value and
 its output is poisoned (floating fields NaN, validity flags False; a ``Region`` or
 ``Labels`` stage raises at run time through ``equinox.error_if``), and the NaN
 propagates through the following stages. Knob rows of stages without knobs (and
-of knobs overridden by a named parameter) are ignored.
+of knobs overridden by a named parameter) are ignored. A knob inside ``[0, 1]`` maps
+into the op's declared knob range, which every op computes exactly. Named stage parameters are concrete and
+checked when the pipeline is traced; an out-of-range one raises ``ValueError``.
 
 Stage numbers in error messages are 1-based (for people); the fields of
 :class:`PipelineTypeError` are 0-based (for programs).
@@ -78,9 +80,13 @@ def apply(x: Any, op: str, a: Any = None, b: Any = None, **params: Any) -> Any:
         knob clipped into ``[0, 1]`` (bounded work) and its output is poisoned --
         every floating field NaN and the validity flags (``valid``, ``converged``,
         ...) False; a sort with no floating field (``Region``, ``Labels``) raises at
-        run time through ``equinox.error_if``. Named parameters that are traced
-        follow the op's own rule (e.g. ``gaussian``: a traced sigma above
-        ``max_sigma`` gives NaN).
+        run time through ``equinox.error_if``. A named parameter that is traced
+        fails closed the same way wherever an eager call would refuse its value
+        (every range check an op makes on a parameter, e.g. ``sigma > 0``,
+        ``channel`` in {0, 1, 2}, is recorded on a traced value by the registry
+        and poisons the output); where the op's own rule is stricter it says so
+        (``gaussian``: a traced sigma above ``max_sigma`` gives NaN). No traced
+        value is clamped into a plausible result.
       **params: named keyword parameters (a parameter cannot be set both by a
         knob and by name).
 

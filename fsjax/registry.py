@@ -40,6 +40,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
+from ._checks import traced_checks
 from .types import Sort, is_concrete
 
 __all__ = [
@@ -399,7 +400,13 @@ def register(
                         f"{sort.__name__}; ops take one instance, batch with jax.vmap"
                     )
                 arg.check(op=opname, arg=pname)
-            return truncation_poison(spec, args, _call(opname, fn, args, kwargs))
+            # a traced parameter that an eager call would refuse (check_range & co. in the op)
+            # poisons the output instead of giving a plausible number computed from it
+            with traced_checks(kwargs.values()) as bad:
+                out = _call(opname, fn, args, kwargs)
+            if bad:
+                out = poison(out, functools.reduce(jnp.logical_or, bad), who=opname)
+            return truncation_poison(spec, args, out)
 
         spec = OpSpec(
             name=opname,

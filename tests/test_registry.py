@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -116,3 +117,33 @@ def test_compiled_calls_compiles_whole_and_matches_eager():
     # bad parameters are still refused, naming the op and the argument
     with fsjax.compiled_calls(), pytest.raises(ValueError, match="sigma"):
         fsjax.ops.gaussian(img, sigma=-1.0)
+
+
+def test_traced_named_parameters_outside_their_domain_fail_closed():
+    """Issue 20 item 3 sweep: a traced *named* parameter that the eager call refuses (its
+    check_range / check_positive / the op's own check) poisons the op's output through the
+    registry, for every op that checks it (found by sweeping each knob-mapped parameter past
+    its knob range under jit: before, color_channel(channel=5) gave the blue channel and
+    decorrelation_stretch(target_sigma=-0.075) and canny(sigma=-1.25) a normal-looking result).
+    In range, the traced call equals the eager one; a check inside an op's inner trace
+    records nothing (no leaked tracer)."""
+    rgb = fsjax.Color(jnp.linspace(0.0, 1.0, 8 * 8 * 3, dtype=jnp.float32).reshape(8, 8, 3))
+    ch = jax.jit(lambda c: fsjax.ops.color_channel(rgb, channel=c).data)
+    assert bool(jnp.all(jnp.isnan(ch(5.0)))) and bool(jnp.all(jnp.isnan(ch(-1.0)))) and bool(jnp.all(jnp.isnan(ch(1.5))))
+    assert bool(jnp.array_equal(ch(2.0), rgb.data[..., 2]))  # the null: in range, exact
+    ds = jax.jit(lambda s: fsjax.ops.decorrelation_stretch(rgb, target_sigma=s).data)
+    with pytest.raises(ValueError, match="target_sigma"):
+        fsjax.ops.decorrelation_stretch(rgb, target_sigma=-0.075)
+    assert bool(jnp.all(jnp.isnan(ds(-0.075))))
+    good = ds(0.2)
+    assert bool(jnp.all(jnp.isfinite(good)))
+    assert bool(jnp.allclose(good, fsjax.ops.decorrelation_stretch(rgb, target_sigma=0.2).data, atol=1e-6))
+    # vmap over the parameter: only the bad member is poisoned
+    x = fsjax.Image(rgb.data[..., 0])
+    g = jax.vmap(lambda s: fsjax.ops.gaussian(x, sigma=s).data)(jnp.array([1.0, -1.0, jnp.nan], jnp.float32))
+    assert bool(jnp.all(jnp.isfinite(g[0]))) and bool(jnp.all(jnp.isnan(g[1:])))
+    # a sort with no float field cannot carry NaN: canny raises at run time
+    cn = jax.jit(lambda s: fsjax.ops.canny(x, sigma=s).data)
+    assert cn(1.0).dtype == jnp.bool_
+    with pytest.raises(Exception, match="out of range"):
+        jax.block_until_ready(cn(-1.25))

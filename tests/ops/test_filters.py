@@ -504,3 +504,29 @@ def test_wrong_sort_and_nan_rejected_by_wrapper():
         median(jnp.zeros((8, 8)))
     with pytest.raises(ValueError, match="bilateral"):
         bilateral(Image(jnp.full((8, 8), jnp.nan)))
+
+
+def test_static_supports_bounded_by_the_image():
+    """Issue 20 item 5 sweep: a static support (``max_radius``/``max_size`` for a traced radius)
+    costs no more than the image (clipped to its larger side), and a concrete box size is bounded
+    like every other kernel. Before: box_filter(size=10**7) built 10**7 taps per pixel and axis,
+    and median/guided/morphology with max_radius=10**4 stacked a (2 10**4 + 1)^2 window (memory
+    error or hours). In range the traced call equals the eager one (the null)."""
+    import fsjax
+
+    x = Image(jnp.linspace(0.0, 1.0, 12 * 16, dtype=jnp.float32).reshape(12, 16))
+    with pytest.raises(ValueError, match="box_filter.*'size'.*bound"):
+        fsjax.ops.box_filter(x, size=10 ** 7)
+    with pytest.raises(ValueError, match="guided_filter.*'radius'.*bound"):
+        fsjax.ops.guided_filter(x, radius=10 ** 6)
+    big = 10 ** 4
+    for op, kw, val in ((fsjax.ops.median, {"max_radius": big}, 2.0), (fsjax.ops.erosion, {"max_radius": big}, 2.0),
+                        (fsjax.ops.box_filter, {"max_size": big}, 5.0),
+                        (fsjax.ops.guided_filter, {"max_radius": big}, 2.0)):
+        pname = "size" if op is fsjax.ops.box_filter else "radius"
+        f = jax.jit(lambda v, op=op, kw=kw, pname=pname: op(x, **{pname: v}, **kw).data)
+        got = f(jnp.float32(val))
+        want = op(x, **{pname: int(val)}).data
+        assert bool(jnp.allclose(got, want, atol=1e-6)), op.__name__
+        # beyond the image the eager call refuses; the traced one is NaN, not a clamped window
+        assert bool(jnp.all(jnp.isnan(f(jnp.float32(100.0))))), op.__name__

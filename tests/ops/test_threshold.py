@@ -399,3 +399,19 @@ def test_bad_parameters_raise(call, op, arg, exc):
 def test_wrong_sort_raises():
     with pytest.raises(TypeError, match="otsu"):
         ops.otsu(fsjax.Region(jnp.zeros((4, 4), bool)))
+
+
+def test_traced_radius_above_support_fails_closed():
+    """Issue 20 item 3 sweep: local thresholds clipped a traced radius into [1, max_radius] and
+    returned the Region of the clamped window (radius 30 gave radius 25's answer). Now a traced
+    radius outside its support (or not an integer) raises at run time (a Region cannot carry
+    NaN), the concrete radius is bounded by the image, and the support by the image's side."""
+    img = fsjax.Image(jnp.asarray(np.random.default_rng(0).random((40, 48)), jnp.float32))
+    f = jax.jit(lambda r: fsjax.ops.local_mean(img, radius=r).data)
+    assert bool(jnp.array_equal(f(jnp.float32(3.0)), fsjax.ops.local_mean(img, radius=3).data))  # the null
+    with pytest.raises(Exception, match="out of range"):
+        jax.block_until_ready(f(jnp.float32(30.0)))
+    with pytest.raises(Exception, match="out of range"):
+        jax.block_until_ready(f(jnp.float32(2.5)))
+    with pytest.raises(ValueError, match="local_mean.*'radius'.*bound"):
+        fsjax.ops.local_mean(img, radius=10 ** 6)

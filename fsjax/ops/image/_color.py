@@ -30,7 +30,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ..._checks import check_positive, check_range
+from ..._checks import check_positive, check_range, note_traced
 from ...registry import IntKnob, LinKnob, LogKnob, register
 from ...types import HSV, Color, Image, Lab, is_concrete
 
@@ -495,7 +495,8 @@ def color_channel(img: Color, /, *, channel: int = 0) -> Image:
     """One RGB channel as a grey image: ``out = x[..., channel]`` (0 = R, 1 = G, 2 = B).
 
     The channel may be a traced value (knob ``a`` is an ``IntKnob`` on {0, 1, 2}),
-    so a search can pick the channel; the selection is an exact ``where`` chain.
+    so a search can pick the channel; the selection is an exact ``where`` chain. A
+    traced channel other than 0, 1 or 2 gives an all-NaN image (an eager one raises).
     Not differentiable in the knob (piecewise constant); linear in the input.
 
     Args:
@@ -519,4 +520,6 @@ def color_channel(img: Color, /, *, channel: int = 0) -> Image:
             raise ValueError(f"color_channel: argument 'channel' must be 0, 1 or 2, got {channel!r}")
     x = img.data
     ch = jnp.asarray(channel)
+    # a traced channel outside {0, 1, 2} would select blue: the output is poisoned instead
+    note_traced(channel, ~((ch == 0) | (ch == 1) | (ch == 2)))
     return Image(jnp.where(ch == 0, x[..., 0], jnp.where(ch == 1, x[..., 1], x[..., 2])))

@@ -346,6 +346,13 @@ def _order_core(x, radius, q, *, wr: int, footprint: str, mode: str, kind: str):
     return jnp.where(ok, out, jnp.nan).astype(x.dtype)
 
 
+def _side(img) -> int:
+    """The image's larger side: the bound on any static kernel support (a *traced* radius's
+    ``max_radius`` is clipped to it, so its cost is bounded by the image; beyond it the
+    radius is refused eagerly and gives NaN when traced)."""
+    return max(int(s) for s in img.data.shape[-2:])
+
+
 def _check_rank_common(op, footprint, mode, max_radius):
     check_choice(op, "footprint", footprint, _FOOTPRINTS)
     check_mode(op, mode)
@@ -543,6 +550,10 @@ def box_filter(img: Image, /, *, size: int = 3, mode: str = "reflect", max_size:
     check_mode(op, mode)
     m = check_static_int(op, "max_size", max_size, lo=1)
     s = _int_param(op, "size", size, lo=1)
+    if s is not None:
+        check_kernel_extent(op, "size", s // 2, img.data.shape)  # s taps per pixel and axis
+    else:  # a traced size: static support bounded by the image; a size beyond it is NaN
+        m = min(m, 2 * _side(img) + 1)
     return Image(_box_core(img.data, size, n_taps=m if s is None else s, mode=mode))
 
 
@@ -604,7 +615,8 @@ def median(img: Image, /, *, radius: int = 1, footprint: str = "square", mode: s
         check_kernel_extent(op, "radius", r, img.data.shape)  # (2r + 1)^2 samples per pixel
         n = int(_offsets(r, footprint)[0].sum())
         return Image(_select_core(img.data, r=r, footprint=footprint, mode=mode, rank=n // 2))
-    return Image(_order_core(img.data, radius, 0, wr=mr, footprint=footprint, mode=mode, kind="median"))
+    return Image(_order_core(img.data, radius, 0, wr=min(mr, _side(img)), footprint=footprint, mode=mode,
+                             kind="median"))
 
 
 @register(
@@ -663,7 +675,7 @@ def rank_filter(img: Image, /, *, rank: int = 0, radius: int = 1, footprint: str
         if not -n <= rk < n:
             raise ValueError(f"{op}: argument 'rank' must be in [{-n}, {n - 1}] for a window of "
                              f"{n} samples (radius={r}, footprint={footprint!r}); got {rk}")
-    wr = mr if r is None else r
+    wr = min(mr, _side(img)) if r is None else r
     return Image(_order_core(img.data, radius, rk, wr=wr, footprint=footprint, mode=mode, kind="rank"))
 
 
@@ -715,7 +727,7 @@ def percentile_filter(img: Image, /, *, percentile: float = 50.0, radius: int = 
     mr = _check_rank_common(op, footprint, mode, max_radius)
     check_range(op, "percentile", percentile, 0.0, 100.0)
     r = _int_param(op, "radius", radius, lo=0)
-    wr = mr if r is None else r
+    wr = min(mr, _side(img)) if r is None else r
     return Image(_order_core(img.data, radius, percentile, wr=wr, footprint=footprint, mode=mode,
                              kind="percentile"))
 
@@ -871,7 +883,9 @@ def guided_filter(img: Image, /, *, eps: float = 0.01, radius: int = 4, mode: st
     check_mode(op, mode)
     mr = check_static_int(op, "max_radius", max_radius, lo=1)
     r = _int_param(op, "radius", radius, lo=1)
-    n_taps = 2 * (mr if r is None else r) + 1
+    if r is not None:
+        check_kernel_extent(op, "radius", r, img.data.shape)
+    n_taps = 2 * (min(mr, _side(img)) if r is None else r) + 1
     return Image(_guided_core(img.data, eps, radius, n_taps=n_taps, mode=mode))
 
 

@@ -154,7 +154,9 @@ def flat_morph(x, radius, *, shape: str = "disk", dilate: bool = True, mode: str
         R = int(math.floor(float(radius)))
         rr = float(radius) ** 2
     else:
-        R = int(max_radius)
+        # the static support is bounded by the image (as a concrete radius is): a huge
+        # max_radius costs no more than the image's side; a traced radius beyond it is NaN
+        R = min(int(max_radius), max(h, w))
         r = jnp.asarray(radius, dtype=jnp.result_type(float))
         r2 = r * r
         rr = math.inf

@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ..._checks import check_choice, check_positive, check_range, check_static_int
+from ..._checks import check_choice, check_positive, check_range, check_static_int, note_traced
 from ...registry import IntKnob, LinKnob, register
 from ...types import Image, Region, is_concrete
-from .._common import check_mode, correlate1d
+from .._common import check_kernel_extent, check_mode, correlate1d
 
 __all__ = [
     "local_mean",
@@ -39,13 +39,27 @@ __all__ = [
 # ---------------------------------------------------------------------------
 
 
-def _check_radius(op: str, radius, max_radius) -> int:
+def _check_radius(op: str, radius, max_radius, shape) -> int:
+    """Check ``radius``; return the static support for a traced one.
+
+    A concrete radius must be an integer in ``[1, side]`` (side = the image's larger side:
+    the cost bound). A traced radius's support is ``max_radius`` clipped to the side; a
+    traced value outside ``[1, support]`` or not an integer is recorded for the registry,
+    which fails the call closed (these ops give a ``Region``: it raises at run time) instead
+    of computing a clamped window.
+    """
     max_radius = check_static_int(op, "max_radius", max_radius, 1)
+    side = max(int(v) for v in shape[-2:])
     if is_concrete(radius):
         r = np.asarray(radius, dtype=float)
         if r.ndim or not np.isfinite(r) or r < 1 or r != np.round(r):
             raise ValueError(f"{op}: argument 'radius' must be an integer >= 1, got {radius}")
-    return max_radius
+        check_kernel_extent(op, "radius", int(r), shape)
+        return max_radius
+    R = min(max_radius, side)
+    rv = jnp.asarray(radius)
+    note_traced(radius, ~((rv >= 1) & (rv <= R) & (rv == jnp.round(rv))))
+    return R
 
 
 def _box_taps(radius, max_radius: int, dtype):
@@ -112,7 +126,7 @@ def local_mean(img: Image, /, *, radius: int = 7, offset: float = 0.0, mode: str
       >>> bool((reg.data == truth).all())
       True
     """
-    max_radius = _check_radius("local_mean", radius, max_radius)
+    max_radius = _check_radius("local_mean", radius, max_radius, img.data.shape)
     check_range("local_mean", "offset", offset)
     check_mode("local_mean", mode)
     x = img.data
@@ -160,7 +174,7 @@ def sauvola(img: Image, /, *, radius: int = 7, k: float = 0.2, r: float = 0.5,
       >>> bool((reg.data == truth).all())
       True
     """
-    max_radius = _check_radius("sauvola", radius, max_radius)
+    max_radius = _check_radius("sauvola", radius, max_radius, img.data.shape)
     check_range("sauvola", "k", k, 0.0)
     check_positive("sauvola", "r", r)
     check_mode("sauvola", mode)
@@ -204,7 +218,7 @@ def niblack(img: Image, /, *, radius: int = 7, k: float = 0.2, mode: str = "refl
       >>> bool((reg.data == truth).all())
       True
     """
-    max_radius = _check_radius("niblack", radius, max_radius)
+    max_radius = _check_radius("niblack", radius, max_radius, img.data.shape)
     check_range("niblack", "k", k)
     check_mode("niblack", mode)
     x = img.data
@@ -272,7 +286,7 @@ def dyn_threshold(img: Image, /, *, offset: float = 0.05, radius: int = 7,
       >>> bool((reg.data == truth).all())
       True
     """
-    max_radius = _check_radius("dyn_threshold", radius, max_radius)
+    max_radius = _check_radius("dyn_threshold", radius, max_radius, img.data.shape)
     check_range("dyn_threshold", "offset", offset, 0.0)
     check_choice("dyn_threshold", "smoothing", smoothing, ("mean", "gaussian"))
     check_choice("dyn_threshold", "light_dark", light_dark, ("light", "dark", "equal", "not_equal"))
