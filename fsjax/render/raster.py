@@ -55,6 +55,8 @@ Open3D is reported in ``docs/benchmarks_render.md``.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -158,34 +160,38 @@ def _rays(K, H, W, dtype):
 def _clipped_bbox(P, K, near):
     """Pixel bounding box ``(umin, umax, vmin, vmax)`` of the part of each triangle with z >= near.
 
-    ``P`` is ``(F, 3, 3)`` camera-frame. Returns the box and ``visible`` (some part in front).
+    ``P`` is the camera-frame triangle as three vertices, each a tuple of three ``(F,)`` coordinate
+    arrays (structure of arrays: at 200k faces this runs ~10x faster on XLA:CPU than the same
+    arithmetic on ``(F, 6, 3)`` stacks, whose strided access spills the cache). Each edge that
+    crosses the plane contributes its crossing point (Sutherland-Hodgman against ``z = near``).
+    Returns the box and ``visible`` (some part in front).
     """
-    z = P[..., 2]
-    pts, oks = [], []
+    inf = jnp.asarray(jnp.inf, P[0][0].dtype)
+    umin = vmin = inf
+    umax = vmax = -inf
+    vis = jnp.zeros(P[0][0].shape, bool)
+
+    def add(x, y, z, ok, box):
+        umin, umax, vmin, vmax = box
+        zq = jnp.maximum(jnp.where(ok, z, 1.0), near)
+        xx, yy = x / zq, y / zq
+        u = K[0, 0] * xx + K[0, 1] * yy + K[0, 2]
+        v = K[1, 1] * yy + K[1, 2]
+        return (jnp.minimum(umin, jnp.where(ok, u, inf)), jnp.maximum(umax, jnp.where(ok, u, -inf)),
+                jnp.minimum(vmin, jnp.where(ok, v, inf)), jnp.maximum(vmax, jnp.where(ok, v, -inf)))
+
+    box = (umin, umax, vmin, vmax)
     for i in range(3):
-        pts.append(P[:, i])
-        oks.append(z[:, i] >= near)
-        j = (i + 1) % 3
-        zi, zj = z[:, i], z[:, j]
-        cross = (zi >= near) != (zj >= near)
+        (xi, yi, zi), (xj, yj, zj) = P[i], P[(i + 1) % 3]
+        ok = zi >= near
+        box = add(xi, yi, zi, ok, box)
+        vis = vis | ok
+        cross = ok != (zj >= near)
         den = jnp.where(cross, zj - zi, 1.0)
-        s = jnp.where(cross, (near - zi) / den, 0.0)
-        pts.append(P[:, i] + s[:, None] * (P[:, j] - P[:, i]))
-        oks.append(cross)
-    Q = jnp.stack(pts, axis=1)  # (F, 6, 3)
-    ok = jnp.stack(oks, axis=1)
-    zq = jnp.where(ok, Q[..., 2], 1.0)
-    zq = jnp.maximum(zq, near)
-    x = Q[..., 0] / zq
-    y = Q[..., 1] / zq
-    u = K[0, 0] * x + K[0, 1] * y + K[0, 2]
-    v = K[1, 1] * y + K[1, 2]
-    inf = jnp.asarray(jnp.inf, P.dtype)
-    umin = jnp.min(jnp.where(ok, u, inf), axis=1)
-    umax = jnp.max(jnp.where(ok, u, -inf), axis=1)
-    vmin = jnp.min(jnp.where(ok, v, inf), axis=1)
-    vmax = jnp.max(jnp.where(ok, v, -inf), axis=1)
-    return umin, umax, vmin, vmax, jnp.any(ok, axis=1)
+        t = jnp.where(cross, (near - zi) / den, 0.0)
+        box = add(xi + t * (xj - xi), yi + t * (yj - yi), zi + t * (zj - zi), cross, box)
+        vis = vis | cross
+    return (*box, vis)
 
 
 def _pixel_range(umin, umax, vmin, vmax):
@@ -287,11 +293,12 @@ def _search_fragments(boxes, H, W, B, K, Cj, Nn, Dt, near, fdt):
     py = y0[f] + j // wxf
     yy = (py.astype(fdt) - K[1, 2]) / K[1, 1]
     xx = (px.astype(fdt) - K[0, 2] - K[0, 1] * yy) / K[0, 0]
-    d = jnp.stack([xx, yy, jnp.ones_like(xx)], -1)  # the ray of _rays, elementwise the same numbers
-    num = jnp.einsum("bk,bik->bi", d, Cj[f])
-    den = jnp.sum(d * Nn[f], -1)
+    # the ray d = (xx, yy, 1) of _rays, elementwise the same numbers; per-face data are (F,) arrays
+    # gathered per candidate (a batched (B, 3) x (B, 3, 3) product measured ~50x slower on XLA:CPU)
+    num = [xx * Cj[i][0][f] + yy * Cj[i][1][f] + Cj[i][2][f] for i in range(3)]
+    den = xx * Nn[0][f] + yy * Nn[1][f] + Nn[2][f]
     s = jnp.where(den < 0, -1.0, 1.0).astype(fdt)
-    inside = jnp.all(num * s[:, None] >= 0, axis=-1) & (den != 0) & live
+    inside = (num[0] * s >= 0) & (num[1] * s >= 0) & (num[2] * s >= 0) & (den != 0) & live
     z = Dt[f] / jnp.where(den != 0, den, 1.0)
     z = jnp.where(inside & (z >= near), z, jnp.inf)
     pix = jnp.where(live, py * W + px, H * W)
@@ -311,29 +318,47 @@ def _search_fragments(boxes, H, W, B, K, Cj, Nn, Dt, near, fdt):
 _TRACED_FRAGMENTS_PER_TILE_SLOT = 4
 
 
+def _cross3(a, b):
+    """Cross product of two 3-tuples of arrays (structure of arrays); ``_cross3(b, a)`` is exactly
+    ``-_cross3(a, b)`` in floating point."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
 def _visibility_setup(mesh, camera, near, cull_backfaces, dtype):
-    """Camera-frame face data for the discrete visibility search (no gradient)."""
+    """Camera-frame face data for the discrete visibility search (no gradient).
+
+    Per-face quantities are ``(F,)`` coordinate arrays (structure of arrays): ``Cj[i][c]`` the
+    ``c`` coordinate of ``P_j x P_k``, ``n[c]`` of the edge normal, ``det = P0 . (P1 x P2)``."""
     Xs = jax.lax.stop_gradient(mesh.vertices.astype(dtype))
     Ks, Rs, ts = (jax.lax.stop_gradient(a.astype(dtype)) for a in (camera.K, camera.R, camera.t))
-    P = ((Xs - ts) @ Rs)[mesh.faces]  # (F, 3, 3) camera frame
-    n = jnp.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-    Cj = jnp.stack([jnp.cross(P[:, 1], P[:, 2]), jnp.cross(P[:, 2], P[:, 0]), jnp.cross(P[:, 0], P[:, 1])], axis=1)
-    det = jnp.sum(P[:, 0] * Cj[:, 0], axis=-1)
-    finite = jnp.all(jnp.isfinite(P), axis=(1, 2))
-    area2 = jnp.sum(n * n, axis=-1)
-    scale = jnp.max(jnp.abs(P), axis=(1, 2))
+    Xc = ((Xs - ts) @ Rs).T  # (3, V) camera frame
+    # the barrier materialises the nine gathered coordinate arrays once: without it XLA:CPU fuses
+    # the gathers into every consumer and recomputes them (measured 10x slower at 200k faces)
+    P = jax.lax.optimization_barrier(tuple(tuple(Xc[c][mesh.faces[:, i]] for c in range(3)) for i in range(3)))
+    e1 = tuple(P[1][c] - P[0][c] for c in range(3))
+    e2 = tuple(P[2][c] - P[0][c] for c in range(3))
+    n = _cross3(e1, e2)
+    Cj = (_cross3(P[1], P[2]), _cross3(P[2], P[0]), _cross3(P[0], P[1]))
+    det = _dot3(P[0], Cj[0])
+    finite = functools.reduce(jnp.logical_and, [jnp.isfinite(P[i][c]) for i in range(3) for c in range(3)])
+    area2 = _dot3(n, n)
+    scale = functools.reduce(jnp.maximum, [jnp.abs(P[i][c]) for i in range(3) for c in range(3)])
     eps = jnp.finfo(dtype).eps
     nondeg = area2 > (eps * scale * scale) ** 2
     bad = mesh.face_valid & ~(finite & nondeg)
     usable = mesh.face_valid & finite & nondeg
     if cull_backfaces:
         usable = usable & (det < 0)  # front side seen: n . P0 < 0
-    P0 = jnp.where(usable[:, None, None], P, 1.0)
+    P0 = tuple(tuple(jnp.where(usable, P[i][c], 1.0) for c in range(3)) for i in range(3))
     umin, umax, vmin, vmax, vis = _clipped_bbox(P0, Ks, near)
     usable = usable & vis & jnp.isfinite(umin) & jnp.isfinite(umax) & jnp.isfinite(vmin) & jnp.isfinite(vmax)
     boxes = _fragment_boxes(*_pixel_range(umin, umax, vmin, vmax), usable, camera.height, camera.width)
-    Cj = jnp.where(usable[:, None, None], Cj, 0.0)
-    return Ks, boxes, Cj, jnp.where(usable[:, None], n, 0.0), det, bad
+    Cj = tuple(tuple(jnp.where(usable, c, 0.0) for c in ci) for ci in Cj)
+    return Ks, boxes, Cj, tuple(jnp.where(usable, c, 0.0) for c in n), det, bad
 
 
 @eqx.filter_jit
@@ -433,26 +458,35 @@ def _raster_core(mesh, camera, near, cull_backfaces, B):
     overflow = jnp.minimum(jnp.maximum(total - B, 0), jnp.iinfo(jnp.int32).max).astype(jnp.int32)
 
     # ---- differentiable part: recompute the winning face's hit ----
+    # per-pixel arithmetic on (H, W) coordinate arrays (structure of arrays): the same formulas as
+    # a (H, W, 3, 3) stack with a per-pixel 3x3 product, which XLA:CPU ran ~50x slower
     hit = fid >= 0
     g = jnp.maximum(fid, 0)
-    Pw = Xw[faces[g]]  # (H, W, 3, 3) world
-    Pc = (Pw - t) @ R
-    d = _rays(K, H, W, dtype)
-    nc = jnp.cross(Pc[..., 1, :] - Pc[..., 0, :], Pc[..., 2, :] - Pc[..., 0, :])
-    c = jnp.stack([jnp.cross(Pc[..., 1, :], Pc[..., 2, :]), jnp.cross(Pc[..., 2, :], Pc[..., 0, :]),
-                   jnp.cross(Pc[..., 0, :], Pc[..., 1, :])], axis=-2)
-    den = jnp.sum(d * nc, axis=-1)
+    fv = faces[g]  # (H, W, 3) vertex ids
+    Xc = ((Xw - t) @ R).T  # (3, V) camera frame
+    Pc = [[Xc[c][fv[..., i]] for c in range(3)] for i in range(3)]
+    Xwt = Xw.T
+    Pw = [[Xwt[c][fv[..., i]] for c in range(3)] for i in range(3)]
+    v, u = jnp.meshgrid(jnp.arange(H, dtype=dtype), jnp.arange(W, dtype=dtype), indexing="ij")
+    y = (v - K[1, 2]) / K[1, 1]
+    x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    d = (x, y, jnp.ones_like(x))  # the rays of _rays
+    sub = lambda a, b: [a[c] - b[c] for c in range(3)]  # noqa: E731
+    nc = _cross3(sub(Pc[1], Pc[0]), sub(Pc[2], Pc[0]))
+    c = (_cross3(Pc[1], Pc[2]), _cross3(Pc[2], Pc[0]), _cross3(Pc[0], Pc[1]))
+    den = _dot3(d, nc)
     ok = hit & (den != 0)
     dens = jnp.where(ok, den, 1.0)
-    bary = jnp.where(ok[..., None], jnp.einsum("hwk,hwik->hwi", d, c) / dens[..., None], 0.0)
+    bary = jnp.where(ok[..., None], jnp.stack([_dot3(d, ci) for ci in c], -1) / dens[..., None], 0.0)
     # depth from the edge normal (n . P0) / (n . d): no cancellation for small, distant faces
-    depth = jnp.where(ok, jnp.sum(Pc[..., 0, :] * nc, axis=-1) / dens, 0.0)
+    depth = jnp.where(ok, _dot3(Pc[0], nc) / dens, 0.0)
     if not is_concrete(camera.dist):
         depth = jnp.where(jnp.any(camera.dist != 0), jnp.nan, depth)
-    fn_w = jnp.cross(Pw[..., 1, :] - Pw[..., 0, :], Pw[..., 2, :] - Pw[..., 0, :])
+    fn_w = jnp.stack(_cross3(sub(Pw[1], Pw[0]), sub(Pw[2], Pw[0])), -1)
     face_normal = jnp.where(ok[..., None], _safe_normalize(fn_w), 0.0)
-    vn = vertex_normals(mesh).astype(dtype)[faces[g]]  # (H, W, 3, 3)
-    normal = jnp.where(ok[..., None], _safe_normalize(jnp.einsum("hwi,hwik->hwk", bary, vn)), 0.0)
+    vn = vertex_normals(mesh).astype(dtype).T  # (3, V)
+    nrm = [sum(bary[..., i] * vn[cc][fv[..., i]] for i in range(3)) for cc in range(3)]
+    normal = jnp.where(ok[..., None], _safe_normalize(jnp.stack(nrm, -1)), 0.0)
     front = ok & (den < 0)
     return Raster(
         depth=depth,
