@@ -176,9 +176,13 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
         feats.append(jax.block_until_ready(detect_and_describe(jnp.asarray(grey_image(im)), n_max=n_max,
                                                                       n_octaves=n_octaves)))
         say(f"features {i + 1}/{n}: {int(feats[-1].valid.sum())} keypoints")
-    uv_all = np.stack([np.asarray(f.uv, np.float64) for f in feats])
     valid = np.stack([np.asarray(f.valid) for f in feats])
-    desc = jnp.stack([f.descriptors for f in feats])
+    # valid keypoints come first (sorted by contrast): later stages work on a capacity sized from
+    # the largest count (a multiple of 256), not on n_max (matching costs capacity squared)
+    n_kp = min(n_max, _bucket(int(valid.sum(1).max()), 256, linear=True))
+    valid = valid[:, :n_kp]
+    uv_all = np.stack([np.asarray(f.uv, np.float64)[:n_kp] for f in feats])
+    desc = jnp.stack([f.descriptors[:n_kp] for f in feats])
     times["features"] = time.perf_counter() - t0
 
     # 2. matching (all pairs, one call)
@@ -197,8 +201,8 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
         b = M[p][a]
         e = dict(i=int(i), j=int(j), matches=int(len(a)), inliers=0, flag="few_matches")
         if len(a) >= min_inliers:
-            res = relative_pose(jax.random.fold_in(key, p), jnp.asarray(_pad(uv_all[i][a], n_max)),
-                                jnp.asarray(_pad(uv_all[j][b], n_max)), Kj, threshold_px=threshold_px,
+            res = relative_pose(jax.random.fold_in(key, p), jnp.asarray(_pad(uv_all[i][a], n_kp)),
+                                jnp.asarray(_pad(uv_all[j][b], n_kp)), Kj, threshold_px=threshold_px,
                                 n_hypotheses=n_hypotheses)
             inl = np.asarray(res.inliers)[:len(a)]
             e["inliers"] = int(inl.sum())
@@ -223,15 +227,15 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
 
     # 4. tracks
     t0 = time.perf_counter()
-    uf = _UF(n * n_max)
+    uf = _UF(n * n_kp)
     for i, j, a, b in edges:
-        for x, y in zip(i * n_max + a, j * n_max + b):
+        for x, y in zip(i * n_kp + a, j * n_kp + b):
             uf.union(int(x), int(y))
-    nodes = np.unique(np.concatenate([np.concatenate([i * n_max + a, j * n_max + b]) for i, j, a, b in edges])) \
+    nodes = np.unique(np.concatenate([np.concatenate([i * n_kp + a, j * n_kp + b]) for i, j, a, b in edges])) \
         if edges else np.zeros(0, np.int64)
     roots = np.array([uf.find(int(x)) for x in nodes], np.int64)
     _, tid = np.unique(roots, return_inverse=True)
-    obs_img, obs_kp = nodes // n_max, nodes % n_max
+    obs_img, obs_kp = nodes // n_kp, nodes % n_kp
     T = int(tid.max()) + 1 if len(tid) else 0
     # drop tracks with two keypoints in one image
     dup = np.zeros(T, bool)
@@ -380,8 +384,8 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
             tried[nxt] = len(k)
             reasons[nxt] = f"sees only {len(k)} triangulated points (PnP needs >= 12)"
             continue
-        res = solve_pnp_ransac(jax.random.fold_in(pkey, nxt * 100 + len(tried)), jnp.asarray(_pad(X[tid[k]], n_max)),
-                               jnp.asarray(_pad(obs_uv[k], n_max)), Kj, threshold_px=max_reproj_px,
+        res = solve_pnp_ransac(jax.random.fold_in(pkey, nxt * 100 + len(tried)), jnp.asarray(_pad(X[tid[k]], n_kp)),
+                               jnp.asarray(_pad(obs_uv[k], n_kp)), Kj, threshold_px=max_reproj_px,
                                n_hypotheses=n_hypotheses)
         n_in = int(res.n_inliers)
         pose = int(res.reason) in (reason_code("ok"), reason_code("max_iterations"))
