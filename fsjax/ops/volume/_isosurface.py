@@ -49,6 +49,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 from ..._checks import check_static_int
 from ...registry import register
@@ -219,7 +220,8 @@ def _mc_core(vol, level, *, max_faces: int, max_vertices: int, spacing):
     flat = vol.astype(dt).reshape(-1)
     level = jnp.asarray(level, dt)
     ins = (flat > level).astype(jnp.uint8)
-    idx = jnp.arange(N, dtype=jnp.int32)
+    # (the barrier keeps XLA from constant-folding the grid coordinates: ~10 s of compile at 64^3)
+    idx = lax.optimization_barrier(jnp.arange(N, dtype=jnp.int32))
     jx, iy, kz = idx % W, (idx // W) % H, idx // HW
     # crossed grid edges, axis-major: edge id = axis * N + voxel (axis 0 = x, 1 = y, 2 = z)
     crossed = jnp.concatenate([(ins != _ahead(ins, 1)) & (jx < W - 1),
