@@ -125,18 +125,36 @@ def _pca(x, v):
     return c, jnp.maximum(ev, 0.0), evec
 
 
+def _spread_ok(x, v, ev_small, ev_big):
+    """Traced bool: a principal variance ``ev_small`` is resolved, not rounding.
+
+    Relative to the largest (``> max(1e-12, 32 eps) ev_big``: the eigen-solver's own
+    error is ~``eps ev_big``) and above the floor that rounding the coordinates leaves: centring points at distance ``R`` from the origin in a dtype with
+    machine epsilon ``eps`` scatters them by ~``eps R``; the axis must spread more than
+    ``32 eps R`` (measured: collinear float32 points at R = 1e4 give a second axis of
+    ~``8 eps R``). So collinear points in float32 fail closed as they do in float64,
+    whatever the units.
+    """
+    eps = float(jnp.finfo(x.dtype).eps)
+    R = jnp.max(jnp.where(v[:, None], jnp.abs(x), 0.0))
+    return (ev_small > max(1e-12, 32 * eps) * ev_big) & (ev_small > (32 * eps * R) ** 2)
+
+
 _NEED = {"plane": 3, "line": 2, "sphere": 4, "circle3d": 3, "cylinder": 5, "quadric": 6}
 
 
-def _finish(kind, names, params, res, v, ok, steps=0, solved=True):
-    """The :class:`Fit3D` record; ``solved`` False = the iterative refinement did not converge."""
+def _finish(kind, names, params, res, v, ok, steps=0, solved=True, supported=True):
+    """The :class:`Fit3D` record; ``solved`` False = the iterative refinement did not converge;
+    ``supported`` False = the data do not resolve the model (reason ``unsupported_model``)."""
     r = jnp.where(v, res, jnp.nan)
     n = jnp.sum(v)
     rss = jnp.sum(jnp.where(v, res * res, 0.0))
     ok = ok & jnp.all(jnp.isfinite(params)) & jnp.isfinite(rss)
-    reason = jnp.where(ok, reason_code("ok"), jnp.where(
+    reason = jnp.where(ok & supported, reason_code("ok"), jnp.where(
         n < _NEED[kind], reason_code("too_few"),
-        jnp.where(solved, reason_code("degenerate"), reason_code("max_iterations"))))
+        jnp.where(~ok, jnp.where(solved, reason_code("degenerate"), reason_code("max_iterations")),
+                  reason_code("unsupported_model"))))
+    ok = ok & supported
     return Fit3D(params=jnp.where(ok, params, jnp.nan), residuals=jnp.where(ok, r, jnp.nan),
                  rss=jnp.where(ok, rss, jnp.nan), rms_len=jnp.where(ok, jnp.sqrt(rss / jnp.maximum(n, 1)), jnp.nan),
                  n_used=n.astype(jnp.int32), iterations=jnp.asarray(steps, jnp.int32), converged=ok,
@@ -165,7 +183,8 @@ def fit_plane(xyz, valid=None) -> Fit3D:
 
     Minimises the sum of squared orthogonal distances (closed form). Fails
     closed (``converged`` False) for fewer than 3 valid points or collinear
-    ones (second eigenvalue below ``1e-12`` of the largest).
+    ones (second eigenvalue below ``max(1e-12, 32 eps)`` of the largest, or its spread
+    below ``32 eps`` times the points' distance from the origin: rounding, in any dtype).
 
     Example:
       >>> import jax.numpy as jnp
@@ -177,7 +196,7 @@ def fit_plane(xyz, valid=None) -> Fit3D:
     x, v = _prep(xyz, valid, "fit_plane")
     c, ev, evec = _pca(x, v)
     n = _canon(evec[:, 0])
-    ok = (jnp.sum(v) >= 3) & (ev[1] > 1e-12 * ev[2]) & (ev[2] > 0)
+    ok = (jnp.sum(v) >= 3) & _spread_ok(x, v, ev[1], ev[2]) & (ev[2] > 0)
     p = jnp.concatenate([n, jnp.dot(n, c)[None]])
     return _finish("plane", ("nx", "ny", "nz", "d"), p + 0.0, x @ n - p[3], v, ok)
 
@@ -289,7 +308,7 @@ def fit_circle3d(xyz, valid=None, *, max_steps: int = 100) -> Fit3D:
     A = jnp.concatenate([2 * u, jnp.ones_like(u[:, :1])], 1) * w[:, None]
     b = jnp.sum(u * u, 1) * w
     ata = A.T @ A
-    ok = (jnp.sum(v) >= 3) & (ev[1] > 1e-12 * ev[2])
+    ok = (jnp.sum(v) >= 3) & _spread_ok(x, v, ev[1], ev[2])
     s = solve_small(jnp.where(ok, ata, jnp.eye(3, dtype=x.dtype)), A.T @ b)
     r2 = s[2] + s[0] ** 2 + s[1] ** 2
     y0 = jnp.stack([s[0], s[1], jnp.sqrt(jnp.where(r2 > 0, r2, 1.0))])
@@ -362,7 +381,10 @@ def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
     are perpendicular to its axis); each start gets an in-plane algebraic
     circle, then LM on the radial residual ``|(x - c) x a| - r``; the
     converged start with the smallest residual sum wins (all four in one
-    ``vmap``). Fails closed with fewer than 5 valid points or no converged start.
+    ``vmap``). Fails closed with fewer than 5 valid points or no converged start,
+    and with reason ``unsupported_model`` when the points do not resolve any
+    curvature: the best plane explains them about as well (F-test of the two extra
+    parameters, ``F < 7``, i.e. the 0.1 % level) or they are flat to rounding.
 
     Example:
       >>> import jax.numpy as jnp, numpy as np
@@ -376,7 +398,7 @@ def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
     from ..ops.points._cloud import knn
 
     x, v = _prep(xyz, valid, "fit_cylinder")
-    c, _, evec = _pca(x, v)
+    c, ev, evec = _pca(x, v)
     xc = x - c
     idx, _ = knn(xc, xc, min(12, x.shape[0]), ref_valid=v)
     nrm = jnp.where(v[:, None], _local_normals(xc, v, idx), 0.0)
@@ -387,8 +409,18 @@ def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
     pb = p[best]
     cen = pb[:3] + c
     cen = cen - jnp.dot(cen, pb[3:6]) * pb[3:6]
+    # curvature the data resolve: the best plane (3 parameters) must explain the points
+    # significantly worse than the cylinder (5): F = ((rss_p - rss_c) / 2) / (rss_c / (n - 5))
+    # above 7 (~ F(2, n - 5) at the 0.1 % level for n >~ 50), and the points must leave the
+    # plane by more than rounding. Else a flat patch gave a confident cylinder (radius 154
+    # for a 2 x 2 patch with 0.01 noise).
+    n = jnp.sum(v).astype(x.dtype)
+    rss_p = n * ev[0]
+    eps = float(jnp.finfo(x.dtype).eps)
+    R = jnp.max(jnp.where(v[:, None], jnp.abs(x), 0.0))
+    curved = (rss_p > rss[best] * (1 + 14 / jnp.maximum(n - 5, 1))) & (ev[0] > (32 * eps * R) ** 2)
     return _finish("cylinder", ("cx", "cy", "cz", "ax", "ay", "az", "r"), jnp.concatenate([cen, pb[3:]]),
-                   res[best], v, ok[best] & (jnp.sum(v) >= 5), steps[best])
+                   res[best], v, ok[best] & (jnp.sum(v) >= 5), steps[best], supported=curved)
 
 
 @jax.jit
@@ -431,7 +463,7 @@ def fit_quadric(xyz, valid=None) -> Fit3D:
     A = jnp.stack([U * U, U * V, V * V, U, V, jnp.ones_like(U)], 1) * wt[:, None]
     ata = A.T @ A
     eg, egv = eigh_small(ata)
-    ok = (jnp.sum(v) >= 6) & (eg[0] > 1e-12 * eg[-1]) & (ev[1] > 1e-12 * ev[2])
+    ok = (jnp.sum(v) >= 6) & (eg[0] > 1e-12 * eg[-1]) & _spread_ok(x, v, ev[1], ev[2])
     q = solve_spd_eig(jnp.where(ok, eg, 1.0), egv, A.T @ (w * wt))
     h = jnp.stack([U * U, U * V, V * V, U, V, jnp.ones_like(U)], 1) @ q
     hu = (2 * q[0] * U + q[1] * V + q[3]) / sc

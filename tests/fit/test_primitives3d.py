@@ -27,6 +27,7 @@ from fsjax.fit import (
     point_plane_distance,
     select_model,
 )
+from fsjax.types import reason_code
 
 MODELS = ("plane", "sphere", "cylinder")
 
@@ -134,6 +135,30 @@ def test_degenerate_fits_fail_closed():
     assert int(fit_line3d(jnp.asarray(nan)).n_used) == 19 and bool(fit_line3d(jnp.asarray(nan)).converged)
     with pytest.raises(ValueError, match="select_model.*criterion"):
         select_model(jnp.asarray(line), criterion="hqc")
+
+
+def test_unsupported_models_fail_closed_in_any_dtype_and_units():
+    """Issue 20 sweep (detectors that accept a model the data do not support, unit/dtype-dependent
+    thresholds). Before: collinear float32 points 100-200 units from the origin gave a converged
+    plane and 3-D circle (the test ``ev[1] > 1e-12 ev[2]`` sat below float32's rounding), and a
+    flat 2 x 2 patch with 0.01 noise gave a converged cylinder of radius 154 (float64 too).
+    Now both refuse; the nulls -- a real thin plane in float32 and a real half-cylinder with the
+    same noise -- are still accepted."""
+    rng = np.random.default_rng(0)
+    d = np.array([0.3, 0.5, 0.81]) / np.linalg.norm([0.3, 0.5, 0.81])
+    line = np.array([100.0, 200.0, 50.0]) + rng.uniform(-10, 10, (100, 1)) * d
+    thin = np.array([100.0, 200.0, 50.0]) + np.c_[rng.uniform(-10, 10, 100), rng.uniform(-0.5, 0.5, 100), np.zeros(100)]
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    fp, fc = fit_plane(f32(line)), fit_circle3d(f32(line))
+    assert not bool(fp.converged) and not bool(fc.converged)
+    assert bool(fit_plane(f32(thin)).converged)  # the null: a plane 20 x 1 units is resolved in float32
+    r2 = np.random.default_rng(0)
+    flat = np.c_[r2.uniform(-1, 1, (200, 2)), 0.01 * r2.normal(size=200)]
+    fy = fit_cylinder(jnp.asarray(flat))
+    assert not bool(fy.converged) and int(fy.reason) == reason_code("unsupported_model")
+    cy = fit_cylinder(jnp.asarray(sample("cylinder", 3, n=200, noise=0.01)))
+    print(f"flat patch: cylinder refused (reason {int(fy.reason)}); half cylinder, same noise: r {float(cy['r']):.4f}")
+    assert bool(cy.converged) and abs(float(cy["r"]) - 1) < 0.02
 
 
 _CHUNK = 67  # one compiled program (batch of 67) serves both model-selection tests
