@@ -530,3 +530,8 @@ def test_static_supports_bounded_by_the_image():
         assert bool(jnp.allclose(got, want, atol=1e-6)), op.__name__
         # beyond the image the eager call refuses; the traced one is NaN, not a clamped window
         assert bool(jnp.all(jnp.isnan(f(jnp.float32(100.0))))), op.__name__
+        # below the domain, or not an integer: refused eagerly, NaN when traced (box size -6 gave
+        # a normal-looking image)
+        assert bool(jnp.all(jnp.isnan(f(jnp.float32(-6.0))))), op.__name__
+        if op is not fsjax.ops.erosion:  # a real radius is valid for morphology
+            assert bool(jnp.all(jnp.isnan(f(jnp.float32(val + 0.5))))), op.__name__

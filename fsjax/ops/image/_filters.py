@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._checks import check_choice, check_positive, check_range, check_static_int
+from ..._checks import check_choice, check_positive, check_range, check_static_int, note_traced
 from ...registry import IntKnob, LinKnob, LogKnob, register
 from ...types import Image, is_concrete
 from .._common import check_kernel_extent, check_mode, correlate1d, pad2d, support_exceeded
@@ -61,8 +61,14 @@ _FOOTPRINTS = ("square", "disk")
 
 
 def _int_param(op: str, name: str, v, lo: int | None = None) -> int | None:
-    """A concrete integer-valued parameter as a Python int (checked); ``None`` when traced."""
+    """A concrete integer-valued parameter as a Python int (checked); ``None`` when traced.
+
+    A traced value that the eager check would refuse (not an integer, below ``lo``) is
+    recorded for the registry, which poisons the op's output (``note_traced``)."""
     if not is_concrete(v):
+        x = jnp.asarray(v)
+        ok = jnp.isfinite(x) & (x == jnp.round(x))
+        note_traced(v, ~(ok & (x >= lo)) if lo is not None else ~ok)
         return None
     if isinstance(v, bool):
         raise TypeError(f"{op}: argument {name!r} must be an integer, got {v!r}")
