@@ -121,11 +121,12 @@ def make(name: str, case: str, p: np.ndarray, r: float):
         # compiled once, on a fresh jit, timed apart; the timed callable runs the executable
         secs, compiled = jax_compile(f, pj)
         return lambda: jax.block_until_ready(compiled(pj)), (secs, compiled)
-    if name == "cKDTree":
+    if name in ("cKDTree", "cKDTree-mt"):  # single-threaded, and on every core (workers=-1)
+        w = 1 if name == "cKDTree" else -1
         if kind == "knn":
             k = int(kval)
-            return (lambda: cKDTree(p).query(p, k)), None
-        return (lambda: cKDTree(p).query_ball_point(p, r)), None
+            return (lambda: cKDTree(p).query(p, k, workers=w)), None
+        return (lambda: cKDTree(p).query_ball_point(p, r, workers=w)), None
     o3d = _o3d()
     if o3d is None:
         return None, None
@@ -164,7 +165,7 @@ def normalise(name: str, case: str, out, p: np.ndarray):
             return idx, d2, None
         idx, d2, cnt, _ = (np.asarray(a) for a in out)
         return idx, d2, cnt
-    if name == "cKDTree":
+    if name in ("cKDTree", "cKDTree-mt"):
         if kind == "knn":
             d, i = out
             return np.asarray(i), np.asarray(d) ** 2, None
@@ -255,13 +256,15 @@ def fmt_b(b: float | None) -> str:
     return "-" if b is None else f"{b / 2**20:.0f} MiB"
 
 
-def run(sizes, repeats, names, log, on_case=None):
+def run(sizes, repeats, names, log, on_case=None, mem=True, cases=None):
     """All (size, case) pairs, most informative first (k = 8 and radius at both sizes, then k = 16, 32);
     ``on_case(rows)`` is called after each, so an interrupted run still documents what it measured."""
     rows = []
     clouds = {}
     order = [(n, c) for c in ("knn=8", "radius") for n in sizes] + \
             [(n, c) for c in ("knn=16", "knn=32") for n in sizes]
+    if cases:
+        order = [(n, c) for c in cases for n in sizes]
     for n, case in order:
         if n not in clouds:
             p = cloud(n)
@@ -288,7 +291,7 @@ def run(sizes, repeats, names, log, on_case=None):
         for name in fns:
             res = normalise(name, case, fns[name](), p)
             exact, dmax = exactness(case, res, ref, p)
-            mem = mem_subprocess(name, case, n)
+            mem = mem_subprocess(name, case, n) if mem else {}
             row = {"n": n, "case": case, "name": name, "median": timings[name].median,
                    "q1": timings[name].q1, "q3": timings[name].q3, "compile": comp if name == "fsjax" else None,
                    "exact": exact, "dmax": dmax, "rss": mem.get("rss_growth_bytes"),
@@ -375,6 +378,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--mem-case", default=None)
     ap.add_argument("--sizes", default=None, help="comma-separated cloud sizes (default 10000,100000)")
+    ap.add_argument("--cases", default=None, help="comma-separated cases, e.g. knn=16,knn=32,radius")
+    ap.add_argument("--names", default="fsjax,cKDTree,cKDTree-mt,o3d-flann,o3d-nns")
+    ap.add_argument("--no-mem", action="store_true", help="skip the peak-memory subprocesses")
     args = ap.parse_args()
     if args.mem_case:
         name, case, n = args.mem_case.split(",")
@@ -384,7 +390,7 @@ def main() -> None:
     if args.sizes:
         sizes = tuple(int(x) for x in args.sizes.split(","))
     repeats = 3 if args.quick else args.repeats
-    names = ["fsjax", "cKDTree", "o3d-flann", "o3d-nns"]
+    names = args.names.split(",")
     t0 = time.time()
     load0 = load_average() or (0, 0, 0)
     info = machine_info()
@@ -393,7 +399,8 @@ def main() -> None:
         if args.write_docs:
             write_docs(markdown(rows, info, load0, load_average() or (0, 0, 0), repeats))
 
-    rows = run(sizes, repeats, names, lambda s: print(s, flush=True), checkpoint)
+    rows = run(sizes, repeats, names, lambda s: print(s, flush=True), checkpoint, mem=not args.no_mem,
+               cases=args.cases.split(",") if args.cases else None)
     load1 = load_average() or (0, 0, 0)
     md = markdown(rows, info, load0, load1, repeats)
     print(md)

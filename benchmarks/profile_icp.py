@@ -87,6 +87,9 @@ def stages(src, tgt, tv):
             return estimate_normals(t, tv, k=10, index=index)
         out += [("nn k=1 on the index, at 10 deg (first iteration)", nn, (src, tgt)),
                 ("nn k=1 on the index, aligned (last iterations)", nn, (tgt, tgt))]
+        if "approx" in icp_mod.query_knn.__code__.co_varnames:  # the approximate mode of the early iterations
+            out.append(("nn k=1 on the index, approximate mode, at 10 deg (early iterations)",
+                        lambda s: icp_mod.query_knn(index, s, 1, approx=True), (src,)))
         from scipy.spatial import cKDTree  # for scale: a tree built once, queried single-threaded
         tree = cKDTree(np.asarray(tgt))
         out += [("for scale: cKDTree query k=1, at 10 deg", lambda s: tree.query(np.asarray(s), 1), (src,)),

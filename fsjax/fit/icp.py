@@ -52,7 +52,12 @@ pairs (reason 3) give NaN pose, NaN ``rms_len`` and ``converged=False``.
 Neighbour search: one index of the target, built once per call and reused by every iteration
 inside the compiled loop, and by the normals / covariances / spacing pass
 (:func:`fsjax.ops.build_index`, a sorted-cell grid with two coarser levels for the far queries of
-the first iterations; exact, equal to ``cKDTree``). Small problems (``N M <= 2**22``) use the
+the first iterations; exact, equal to ``cKDTree``). On the grid the loop has two phases: first
+the index's approximate mode (:func:`fsjax.ops.query_knn` ``approx=True``: a source point far
+from the target may get a target point of the first cell block that holds one, not the nearest),
+until the increment is small; then exact nearest neighbours until the increment is small again.
+The returned pose, ``rms_len`` and ``inlier_fraction`` come from exact correspondences; the
+iteration count includes both phases. Small problems (``N M <= 2**22``) use the
 same module's blocked brute force instead (same answers, cheaper to compile). No (N, M) array is
 formed anywhere. The normals / covariances and the registration modules search with the one
 public k-NN, :func:`fsjax.ops.knn` (any dimension, grid or brute force, a reusable index).
