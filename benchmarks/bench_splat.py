@@ -58,7 +58,8 @@ def run(counts, viewer: bool, repeats: int, steps: int):
         row = {"splats": n, "size": 128, "load_before": os.getloadavg()[0]}
         r = train_splats(jax.random.key(0), data, n_init=n, max_splats=n, iterations=steps, densify_from=10**9,
                          progress=False)
-        row.update(step_s=r.step_seconds, step_compile_s=r.compile_seconds, step_compile_cpu_s=r.compile_cpu_seconds, pairs=int(np.max(r.pairs)),
+        row.update(step_s=r.step_seconds, step_compile_s=r.compile_seconds, step_compile_cpu_s=r.compile_cpu_seconds,
+                   step_cpu_s=r.step_cpu_seconds, pairs=int(np.max(r.pairs)),
                    buffer=int(r.max_pairs), overflow=int(np.max(r.overflow)))
         g = init_from_mesh(jax.random.key(0), data, n, n)
         cam = _cam(data, int(data.train[0]), jnp.float32)

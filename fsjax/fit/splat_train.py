@@ -253,7 +253,9 @@ class SplatTrainResult(FitResult):
     ``overflow`` per step (splat-tile pairs dropped); ``step_seconds`` median wall time of a
     step (steps that compiled excluded); ``compile_seconds`` (first step plus every step that
     grew the pair buffer), and ``compile_cpu_seconds`` the process CPU time of those steps (less
-    sensitive to other load on the machine than the wall time); ``converged`` (the optimiser's Cauchy test never fires in a
+    sensitive to other load on the machine than the wall time); ``step_cpu_seconds`` the median
+    process CPU time (all threads) of a step that did not compile, roughly an upper bound of the
+    step's wall time on an idle machine; ``converged`` (the optimiser's Cauchy test never fires in a
     fixed-length run, so this reports whether the final loss is finite); ``pairs`` the
     rasteriser's (splat, tile) pair demand per step; ``max_pairs`` the final buffer size.
 
@@ -272,6 +274,7 @@ class SplatTrainResult(FitResult):
     pairs: np.ndarray = None
     max_pairs: int = 0
     compile_cpu_seconds: float = float("nan")
+    step_cpu_seconds: float = float("nan")
 
     @property
     def reason(self):
@@ -385,7 +388,7 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
         return y2, state2, aux, state2.f
 
     order = np.asarray(jax.random.permutation(kview, np.tile(data.train, iterations // len(data.train) + 1)))
-    losses, overflows, counts, times, demand = [], [], [], [], []
+    losses, overflows, counts, times, demand, cpu_times = [], [], [], [], [], []
     compiled = {B}
     gacc = np.zeros(N)
     gden = np.zeros(N)
@@ -414,6 +417,7 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
             compile_cpu += time.process_time() - c0
         else:
             times.append(dt_s)
+            cpu_times.append(time.process_time() - c0)
         demand.append(int(npairs))
         losses.append(f)
         overflows.append(int(ov))
@@ -433,7 +437,8 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     return SplatTrainResult(gaussians=gfin, loss=np.asarray(losses), n_splats=np.asarray(counts, int),
                             overflow=np.asarray(overflows), step_seconds=float(np.median(times)) if times else
                             float("nan"), compile_seconds=compile_s, converged=bool(np.isfinite(losses[-1])),
-                            pairs=np.asarray(demand), max_pairs=B, compile_cpu_seconds=compile_cpu)
+                            pairs=np.asarray(demand), max_pairs=B, compile_cpu_seconds=compile_cpu,
+                            step_cpu_seconds=float(np.median(cpu_times)) if cpu_times else float("nan"))
 
 
 class _GroupedAdamState(eqx.Module):
