@@ -268,3 +268,17 @@ def test_bad_parameters_raise():
         fsjax.ops.fit_ellipse(c, max_steps=0)
     with pytest.raises(TypeError, match="fit_circle.*Contour"):
         fsjax.ops.fit_circle(fsjax.Image(jnp.zeros((4, 4))))
+
+
+def test_ellipse_on_a_straight_contour_refused():
+    """Issue 20 sweep (detectors accepting an unsupported model): a straight noisy contour gave a
+    converged ellipse (semi-axes 8.98 x 0.054, rms 1.02 px). Now refused, like fit_circle; the
+    null -- a 10 x 3 ellipse with the same noise -- is still fitted."""
+    rng = np.random.default_rng(0)
+    line = np.c_[np.linspace(2, 30, 60), 10 + 0.05 * rng.normal(size=60)]
+    t = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    ell = np.c_[15 + 10 * np.cos(t), 10 + 3 * np.sin(t)] + 0.05 * rng.normal(size=(60, 2))
+    fl = fsjax.ops.fit_ellipse(fsjax.Contour(jnp.asarray(line), valid=jnp.ones(60, bool)))
+    fe = fsjax.ops.fit_ellipse(fsjax.Contour(jnp.asarray(ell), valid=jnp.ones(60, bool)))
+    assert not bool(fl.converged) and bool(jnp.all(jnp.isnan(fl.params)))
+    assert bool(fe.converged) and abs(float(fe.params[2]) - 10) < 0.1 and abs(float(fe.params[3]) - 3) < 0.1
