@@ -38,7 +38,7 @@ _NAMES = {
                              "Gaussians", "Image", "Lab", "Labels", "Match", "Mesh", "Points", "Region",
                              "RegionProps", "Signal", "Sort", "Volume", "LabelVolume", "LightStack", "NormalMap",
                              "FringeStack", "GrayStack", "PointValues", "PointLabels", "StructuredLightRig",
-                             "MeshTopology")},
+                             "MeshTopology", "DepthStack")},
 }
 
 __all__ = sorted(_NAMES) + list(_SUBMODULES)
@@ -101,6 +101,7 @@ if TYPE_CHECKING:  # static analysers see the eager imports
     from .types import Color as Color
     from .types import Contour as Contour
     from .types import Depth as Depth
+    from .types import DepthStack as DepthStack
     from .types import Edges1D as Edges1D
     from .types import Feature as Feature
     from .types import Fit as Fit

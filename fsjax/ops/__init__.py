@@ -61,3 +61,4 @@ from .volume._isosurface import *  # noqa: F403
 from .volume._label3d import *  # noqa: F403
 from .volume._morphology3d import *  # noqa: F403
 from .volume._project3d import *  # noqa: F403
+from .volume._tsdf import *  # noqa: F403

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -19,6 +20,7 @@ from ..types import (
     Color,
     Contour,
     Depth,
+    DepthStack,
     Feature,
     FringeStack,
     GrayStack,
@@ -264,6 +266,16 @@ def _depth(variant, size):
     cam = _camera(variant, size)
     r, c = np.mgrid[0:24, 0:32].astype(float)
     return Depth(jnp.asarray(4.0 + 0.02 * c + 0.01 * r + 0.5 * variant), cam)
+
+
+@register_pool(DepthStack)
+def _depth_stack(variant, size):
+    """Two views of the standard depth input's plane: the standard camera and one shifted 0.3 along x."""
+    d = _depth(variant, size)
+    cam2 = Camera(d.camera.K, width=d.camera.width, height=d.camera.height, dist=d.camera.dist, R=d.camera.R,
+                  t=d.camera.t + jnp.asarray([0.3, 0.0, 0.0], d.camera.t.dtype))
+    cams = jax.tree.map(lambda *a: jnp.stack(a), d.camera, cam2)
+    return DepthStack(jnp.stack([d.z, d.z]), cams)
 
 
 

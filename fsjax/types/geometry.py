@@ -14,7 +14,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._base import Sort, _as_array, is_concrete
 
-__all__ = ["Contour", "Points", "Mesh", "Gaussians", "Camera", "Depth", "PointValues", "PointLabels",
+__all__ = ["Contour", "Points", "Mesh", "Gaussians", "Camera", "Depth", "DepthStack", "PointValues", "PointLabels",
            "StructuredLightRig"]
 
 
@@ -239,6 +239,37 @@ class Depth(Sort):
     @property
     def batch_shape(self) -> tuple[int, ...]:
         return tuple(self.z.shape[:-2])
+
+
+class DepthStack(Sort):
+    """``V`` depth maps of one scene, ``z`` ``(*batch, V, H, W)``, each with its camera.
+
+    ``camera`` is a :class:`Camera` batched ``(*batch, V)`` (stack the views' cameras with
+    ``jax.tree.map(lambda *a: jnp.stack(a), *cameras)``); all views share one image size.
+    0 or NaN in ``z`` means "no return". The input of multi-view fusion (``tsdf_fuse``).
+    """
+
+    _array_field = "z"
+
+    z: Float[Array, "*batch V H W"]
+    camera: Camera
+    _float_fields = ()
+
+    def __init__(self, z: Any, camera: Camera):
+        self.z = _as_array(z, sort="DepthStack", field="z", kind="float", min_ndim=3)
+        if not isinstance(camera, Camera):
+            raise TypeError(f"DepthStack(camera=...): expected a Camera, got {type(camera).__name__}")
+        if tuple(camera.batch_shape) != tuple(self.z.shape[:-2]):
+            raise ValueError(f"DepthStack(camera=...): camera batch shape {camera.batch_shape} must equal the "
+                             f"stack's leading shape {tuple(self.z.shape[:-2])} (one camera per view)")
+        if (camera.height, camera.width) != tuple(self.z.shape[-2:]):
+            raise ValueError(f"DepthStack: depth maps {tuple(self.z.shape[-2:])} do not match the camera's "
+                             f"image size {camera.height} x {camera.width}")
+        self.camera = camera
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.z.shape[:-3])
 
 
 # ---------------------------------------------------------------------------

@@ -4,8 +4,9 @@ Families and their private modules: ``filters3d`` (_filters3d: Gaussian, box, me
 Sobel gradient magnitude, Laplacian of Gaussian), ``morphology3d`` (_morphology3d),
 ``label3d`` (_label3d: connected components and region properties), ``distance3d``
 (_distance3d: exact anisotropic Euclidean distance transform), ``project3d``
-(_project3d: maximum / mean projections along an axis) and ``isosurface`` (_isosurface:
-marching cubes, ``Volume -> Mesh``).
+(_project3d: maximum / mean projections along an axis), ``isosurface`` (_isosurface:
+marching cubes, ``Volume -> Mesh``) and ``fusion`` (_tsdf: depth maps fused into a truncated
+signed distance volume, ``Depth -> Volume``).
 
 Axes are ``(z, y, x)``; ``Volume.spacing`` is ``(dz, dy, dx)`` in ``Volume.unit``.
 The public path of every op is ``fsjax.ops.<name>``; this package exports nothing
