@@ -54,7 +54,8 @@ def _errors(names, reg, centres, R_cw, gt):
     rot, cen = align_to_ground_truth(centres[idx], R_cw[idx], np.array([gt[names[i]][2] for i in idx]),
                                      np.array([gt[names[i]][1] for i in idx]))
     return dict(registered=int(len(idx)), n=len(names), rot_med=float(np.median(rot)), rot_max=float(rot.max()),
-                cen_med_mm=float(1000 * np.median(cen)), cen_max_mm=float(1000 * cen.max()))
+                cen_med_mm=float(1000 * np.median(cen)), cen_max_mm=float(1000 * cen.max()),
+                rot_deg=[float(v) for v in rot], cen_mm=[float(1000 * v) for v in cen])
 
 
 def run_colmap(name):
@@ -175,6 +176,10 @@ def main(argv=None):
     res["load_after"] = load_average()
     out = HERE / "results" / "sfm.json"
     out.parent.mkdir(exist_ok=True)
+    if args.no_features and out.exists():  # keep the feature figures of the last full run
+        old = json.loads(out.read_text())
+        if "features" in old:
+            res["features"] = old["features"]
     out.write_text(json.dumps(res, indent=1, default=float))
     print(f"\nwrote {out}; load average {res['load_before']} -> {res['load_after']}; cores {os.cpu_count()}")
 

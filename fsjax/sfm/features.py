@@ -324,13 +324,16 @@ def _detect(img, contrast, n_max: int, n_octaves: int, upsample: bool):
         H, W = D.shape[1:]
         mx = _max3(D, -jnp.inf)
         mn = -_max3(-D, -jnp.inf)
-        inner = jnp.zeros_like(D, dtype=bool).at[1:-1, 5:-5, 5:-5].set(True)
-        ext = inner & ((D >= mx) | (D <= mn)) & (jnp.abs(D) > 0.5 * contrast / _S)
-        score = jnp.where(ext, jnp.abs(D), 0.0).ravel()
+        ext = ((D >= mx) | (D <= mn)) & (jnp.abs(D) > 0.5 * contrast / _S)
+        # inner scales and a 5 px border excluded by slicing (a constant mask would be folded by XLA)
+        score = jnp.where(ext, jnp.abs(D), 0.0)[1:-1, 5:-5, 5:-5]
+        hi, wi = H - 10, W - 10
+        score = score.ravel()
         cap = min(max(n_max >> max(o - int(upsample), 0), 64), score.shape[0])
         val, idx = jax.lax.top_k(score, cap)
         full = lambda v: jnp.full((cap,), v, jnp.int32)  # noqa: E731
-        cands.append((val, idx // (H * W), (idx // W) % H, idx % W, full(o), full(offD), full(offG), full(H), full(W)))
+        cands.append((val, idx // (hi * wi) + 1, (idx // wi) % hi + 5, idx % wi + 5, full(o), full(offD), full(offG),
+                      full(H), full(W)))
         gx, gy = _grads(G[1:_S + 2])
         Ds.append(D.ravel())
         gxs.append(gx.ravel())
