@@ -57,6 +57,7 @@ from .mesh._mesh import *  # noqa: F403
 from .mesh._voxelize import *  # noqa: F403
 from .volume._distance3d import *  # noqa: F403
 from .volume._filters3d import *  # noqa: F403
+from .volume._hessian3d import *  # noqa: F403
 from .volume._isosurface import *  # noqa: F403
 from .volume._label3d import *  # noqa: F403
 from .volume._morphology3d import *  # noqa: F403
