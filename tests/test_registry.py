@@ -142,6 +142,9 @@ def test_traced_named_parameters_outside_their_domain_fail_closed():
     x = fsjax.Image(rgb.data[..., 0])
     g = jax.vmap(lambda s: fsjax.ops.gaussian(x, sigma=s).data)(jnp.array([1.0, -1.0, jnp.nan], jnp.float32))
     assert bool(jnp.all(jnp.isfinite(g[0]))) and bool(jnp.all(jnp.isnan(g[1:])))
+    # a relation between two parameters (clip: lo <= hi), found by the same sweep
+    cl = jax.jit(lambda lo: fsjax.ops.clip(x, lo=lo, hi=1.0).data)
+    assert bool(jnp.all(jnp.isnan(cl(2.0)))) and bool(jnp.all(jnp.isfinite(cl(0.2))))
     # a sort with no float field cannot carry NaN: canny raises at run time
     cn = jax.jit(lambda s: fsjax.ops.canny(x, sigma=s).data)
     assert cn(1.0).dtype == jnp.bool_

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._checks import check_positive, check_range, check_static_int
+from ..._checks import check_positive, check_range, check_static_int, note_traced
 from ...registry import LinKnob, LogKnob, register
 from ...types import Image, is_concrete
 
@@ -188,6 +188,10 @@ def clip(img: Image, /, *, lo: float = 0.0, hi: float = 1.0) -> Image:
     check_range("clip", "hi", hi)
     if is_concrete(lo) and is_concrete(hi) and bool(np.any(np.asarray(lo) > np.asarray(hi))):
         raise ValueError(f"clip: argument 'lo' ({lo}) must be <= 'hi' ({hi})")
+    # traced lo > hi: the output is poisoned (registry), as the eager call refuses it
+    crossed = jnp.any(jnp.asarray(lo) > jnp.asarray(hi))
+    note_traced(lo, crossed)
+    note_traced(hi, crossed)
     x = img.data
     return Image(jnp.minimum(jnp.maximum(x, lo), hi).astype(x.dtype))
 
