@@ -29,7 +29,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from .._checks import is_concrete
+from .._checks import check_static_int, is_concrete
 
 MODES = ("reflect", "mirror", "nearest", "wrap", "constant")
 UNROLL_TAPS = 129  # correlate1d unrolls kernels up to this many taps, loops over longer ones
@@ -143,3 +143,26 @@ def float_dtype(x: Any):
     """Result float dtype for array ``x`` (keeps float32/float64)."""
     dt = jnp.result_type(x)
     return dt if jnp.issubdtype(dt, jnp.floating) else jnp.result_type(float)
+
+
+def check_grid(op: str, shape: Any, spacing: Any, origin: Any) -> tuple[tuple[int, int, int], tuple[float, float, float],
+                                                                     tuple[float, float, float]]:
+    """Check a voxel grid's ``shape (D, H, W)``, ``spacing (dz, dy, dx)`` and ``origin (x0, y0, z0)``.
+
+    Returns them as static ints / floats; raises naming ``op`` and the argument.
+    """
+    if not isinstance(shape, (tuple, list)) or len(shape) != 3:
+        raise ValueError(f"{op}: argument 'shape' must be (D, H, W); got {shape!r}")
+    shp = tuple(check_static_int(op, "shape", s, lo=1) for s in shape)
+    out = []
+    for name, val, positive in (("spacing", spacing, True), ("origin", origin, False)):
+        try:
+            vals = tuple(float(x) for x in val)
+        except (TypeError, ValueError):
+            raise TypeError(f"{op}: argument '{name}' must be three numbers; got {val!r}") from None
+        if len(vals) != 3 or not all(x == x and abs(x) != float("inf") for x in vals) or \
+                (positive and not all(x > 0 for x in vals)):
+            raise ValueError(f"{op}: argument '{name}' must be three finite{' positive' if positive else ''} "
+                             f"numbers; got {val!r}")
+        out.append(vals)
+    return shp, out[0], out[1]

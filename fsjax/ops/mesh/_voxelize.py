@@ -34,9 +34,10 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ..._checks import check_choice, check_static_int
+from ..._checks import check_choice
 from ...registry import register
 from ...types import Mesh, Volume
+from .._common import check_grid
 
 __all__ = ["mesh_to_volume"]
 
@@ -168,18 +169,7 @@ def mesh_to_volume(mesh: Mesh, /, *, shape: tuple[int, int, int] = (16, 16, 16),
         raise ValueError(f"{op}: argument 'mesh' must be one mesh (batch with jax.vmap); got vertices "
                          f"of shape {mesh.vertices.shape}")
     check_choice(op, "kind", kind, _KINDS)
-    if not isinstance(shape, (tuple, list)) or len(shape) != 3:
-        raise ValueError(f"{op}: argument 'shape' must be (D, H, W); got {shape!r}")
-    shp = tuple(check_static_int(op, "shape", s, lo=1) for s in shape)
-    for name, val, positive in (("spacing", spacing, True), ("origin", origin, False)):
-        try:
-            vals = tuple(float(x) for x in val)
-        except (TypeError, ValueError):
-            raise TypeError(f"{op}: argument '{name}' must be three numbers; got {val!r}") from None
-        if len(vals) != 3 or not all(x == x and abs(x) != float("inf") for x in vals) or \
-                (positive and not all(x > 0 for x in vals)):
-            raise ValueError(f"{op}: argument '{name}' must be three finite{' positive' if positive else ''} "
-                             f"numbers; got {val!r}")
+    shp, _, _ = check_grid(op, shape, spacing, origin)
     sp = tuple(float(x) for x in spacing)
     nf = int(mesh.faces.shape[0])
     pairs = shp[0] * shp[1] * shp[2] * max(nf, 1)

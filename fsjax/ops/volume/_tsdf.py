@@ -36,10 +36,11 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ..._checks import check_positive, check_static_int
+from ..._checks import check_positive
 from ...registry import register
 from ...render.camera import project
 from ...types import Camera, DepthStack, Volume
+from .._common import check_grid
 
 __all__ = ["tsdf_fuse"]
 
@@ -121,18 +122,7 @@ def tsdf_fuse(depth: DepthStack, /, *, shape: tuple[int, int, int] = (16, 16, 16
     op = "tsdf_fuse"
     if not isinstance(depth, DepthStack):
         raise TypeError(f"{op}: argument 'depth' must be a DepthStack; got {type(depth).__name__}")
-    if not isinstance(shape, (tuple, list)) or len(shape) != 3:
-        raise ValueError(f"{op}: argument 'shape' must be (D, H, W); got {shape!r}")
-    shp = tuple(check_static_int(op, "shape", s, lo=1) for s in shape)
-    for name, val, positive in (("spacing", spacing, True), ("origin", origin, False)):
-        try:
-            vals = tuple(float(x) for x in val)
-        except (TypeError, ValueError):
-            raise TypeError(f"{op}: argument '{name}' must be three numbers; got {val!r}") from None
-        if len(vals) != 3 or not all(x == x and abs(x) != float("inf") for x in vals) or \
-                (positive and not all(x > 0 for x in vals)):
-            raise ValueError(f"{op}: argument '{name}' must be three finite{' positive' if positive else ''} "
-                             f"numbers; got {val!r}")
+    shp, _, _ = check_grid(op, shape, spacing, origin)
     check_positive(op, "truncation", truncation)
     z, cam = depth.z, depth.camera
     K, dist, R, t = cam.K, cam.dist, cam.R, cam.t
