@@ -182,3 +182,17 @@ def test_mesh_to_volume_fails_closed():
     holed = fsjax.Mesh(m.vertices + 2.0, m.faces, face_valid=jnp.arange(80) != 0)
     w = fsjax.ops.mesh_to_volume(holed, shape=(5, 5, 5), kind="winding")
     assert 0.5 < float(w.data[2, 2, 2]) < 1.0
+
+
+def test_mesh_to_volume_axes_on_an_off_centre_sphere():
+    # distinct centre coordinates, spacings and sizes per axis: any swapped axis or shifted
+    # voxel centre moves the zero set away from the analytic one
+    R, c = 1.5, np.array([2.1, 3.3, 2.7])                           # (x, y, z)
+    v, f = icosphere(3, R)
+    m = fsjax.Mesh(jnp.asarray(v + c), jnp.asarray(f))
+    sp, shape, origin = (0.5, 0.4, 0.3), (11, 17, 15), (0.1, 0.2, 0.3)
+    sdf = np.asarray(fsjax.ops.mesh_to_volume(m, shape=shape, spacing=sp, origin=origin).data)
+    k, i, j = np.mgrid[:shape[0], :shape[1], :shape[2]]
+    x, y, z = origin[0] + j * sp[2], origin[1] + i * sp[1], origin[2] + k * sp[0]
+    r = np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
+    assert np.abs(sdf - (R - r)).max() < 0.01 * R

@@ -65,3 +65,13 @@ def test_single_wall_and_errors():
         fsjax.ops.tsdf_fuse(fsjax.Depth(jnp.full((16, 16), 4.5), cam))
     with pytest.raises(ValueError, match="one camera per view"):
         fsjax.DepthStack(jnp.zeros((2, 16, 16)), cams)
+
+
+def test_grid_axes_follow_x_y_z():
+    # a camera at the origin looking along +x at a wall at x = 4.5: the grid line must run along
+    # x (voxel [0, 0, j] at x = j); a swapped axis puts the line beside the camera, unobserved
+    R, t = fsjax.render.look_at(jnp.zeros(3), jnp.asarray([1.0, 0.0, 0.0]), up=jnp.asarray([0.0, 0.0, 1.0]))
+    cam = fsjax.Camera.from_intrinsics(20.0, 20.0, 7.5, 7.5, width=16, height=16, R=R, t=t)
+    wall = fsjax.DepthStack(jnp.full((1, 16, 16), 4.5), jax.tree.map(lambda a: a[None], cam))
+    v = fsjax.ops.tsdf_fuse(wall, shape=(1, 1, 8), origin=(0.0, 0.0, 0.0), truncation=2.0)
+    assert np.allclose(np.asarray(v.data[0, 0, :]), [-1, -1, -1, -0.75, -0.25, 0.25, 0.75, 1.0])
