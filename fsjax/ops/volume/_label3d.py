@@ -35,6 +35,7 @@ import numpy as np
 from jax import lax
 
 from ..._checks import check_finite_number, check_static_int
+from ..._linalg import eigh_small
 from ...registry import register
 from ...types import LabelVolume, RegionProps, Volume
 from ..measure2d._label import cumsum_count
@@ -44,6 +45,9 @@ __all__ = ["label3d", "regionprops3d"]
 _REFS = [
     "A. Rosenfeld, J. L. Pfaltz, Sequential operations in digital picture processing, J. ACM 13(4), 1966",
     "Y. Shiloach, U. Vishkin, An O(log n) parallel connectivity algorithm, J. Algorithms 3(1), 1982",
+]
+_PROPS_REFS = _REFS + [
+    "J. Ohser, F. Muecklich, Statistical Analysis of Microstructures in Materials Science, Wiley, 2000",
 ]
 _INT_MAX = jnp.iinfo(jnp.int32).max
 _CONNECTIVITIES = (6, 18, 26)
@@ -201,7 +205,57 @@ def label3d(vol: Volume, /, *, level: float = 0.5, connectivity: int = 26, capac
 
 
 _PROPS = ("volume", "voxels", "centroid_z", "centroid_y", "centroid_x",
-          "bbox_z0", "bbox_y0", "bbox_x0", "bbox_z1", "bbox_y1", "bbox_x1")
+          "bbox_z0", "bbox_y0", "bbox_x0", "bbox_z1", "bbox_y1", "bbox_x1",
+          "inertia_0", "inertia_1", "inertia_2", "axis_z", "axis_y", "axis_x", "surface_area")
+
+# The 13 lattice directions of the 3x3x3 neighbourhood, one of each +-pair, as (dz, dy, dx).
+_DIRECTIONS = tuple((dz, dy, dx) for dz in (0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                    if (dz, dy, dx) > (0, 0, 0))
+
+
+@functools.lru_cache(maxsize=32)
+def crofton_weights(spacing) -> tuple[float, ...]:
+    """Per-direction factor ``2 w_d V / |d|`` of the Crofton surface-area estimate.
+
+    ``w_d`` is the share of the unit sphere nearer to physical direction ``+-d`` than to any
+    other of the 13 (its Voronoi cell, measured on a 200,000-point Fibonacci sphere);
+    ``V / |d|`` is the cross-section of one lattice line along ``d`` (``V`` the voxel volume).
+    """
+    sp = np.asarray(spacing, np.float64)
+    dirs = np.asarray(_DIRECTIONS, np.float64) * sp
+    lengths = np.linalg.norm(dirs, axis=1)
+    unit = dirs / lengths[:, None]
+    n = 200_000
+    i = np.arange(n) + 0.5
+    zc = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - zc * zc)
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * i
+    sphere = np.stack([zc, r * np.cos(phi), r * np.sin(phi)], axis=1)
+    nearest = np.argmax(np.abs(sphere @ unit.T), axis=1)
+    w = np.bincount(nearest, minlength=len(dirs)) / n
+    return tuple(float(x) for x in 2.0 * w * float(np.prod(sp)) / lengths)
+
+
+def _surface_area(lab, seg, k, spacing, dt):
+    """Crofton estimate of each label's surface area: boundary crossings of the 13 line families.
+
+    A lattice line along ``d`` crosses a closed surface ``|n . d|``-weighted: summed over the
+    lines of one family it gives ``N_d V / |d|``, the surface's area projected on the plane
+    normal to ``d``; the mean of ``|n . u|`` over directions is 1/2, so the area is twice the
+    direction-average (Cauchy-Crofton). Voxels outside the volume are background.
+    """
+    d, h, w = lab.shape
+    pad = jnp.pad(lab, 1).reshape(-1)
+    strides = ((h + 2) * (w + 2), w + 2, 1)
+    total = pad.shape[0]
+    contrib = jnp.zeros((total,), dt)
+    for (dz, dy, dx), fac in zip(_DIRECTIONS, crofton_weights(spacing)):
+        s = dz * strides[0] + dy * strides[1] + dx * strides[2]
+        a, b = pad[: total - s], pad[s:]
+        t = jnp.where(a != b, jnp.asarray(fac, dt), jnp.zeros((), dt))
+        contrib = contrib.at[: total - s].add(t).at[s:].add(t)
+    inner = contrib.reshape(d + 2, h + 2, w + 2)[1:-1, 1:-1, 1:-1].reshape(-1)
+    return jax.ops.segment_sum(inner, seg, num_segments=k)
 
 
 @functools.partial(jax.jit, static_argnames=("capacity", "spacing"))
@@ -212,28 +266,59 @@ def _props_core(lab, *, capacity: int, spacing):
     k = capacity + 1
     zz, yy, xx = (a.reshape(-1) for a in jnp.meshgrid(jnp.arange(d), jnp.arange(h), jnp.arange(w),
                                                       indexing="ij"))
-    n = jax.ops.segment_sum(jnp.ones_like(seg, dt), seg, num_segments=k)[:capacity]
+    n_all = jax.ops.segment_sum(jnp.ones_like(seg, dt), seg, num_segments=k)
+    n = n_all[:capacity]
     cols = [n * float(np.prod(spacing)), n]
-    for a, s in zip((zz, yy, xx), spacing):
-        cols.append(jax.ops.segment_sum(a.astype(dt), seg, num_segments=k)[:capacity] / n * s)
+    pos = [a.astype(dt) * s for a, s in zip((zz, yy, xx), spacing)]
+    means = [jax.ops.segment_sum(p, seg, num_segments=k) / jnp.maximum(n_all, 1) for p in pos]
+    cols += [m[:capacity] for m in means]
     for a in (zz, yy, xx):
         cols.append(jax.ops.segment_min(a, seg, num_segments=k)[:capacity].astype(dt))
     for a in (zz, yy, xx):
         cols.append(jax.ops.segment_max(a, seg, num_segments=k)[:capacity].astype(dt) + 1)
+    # Central second moments about each label's centroid (physical units, per voxel), and
+    # the inertia tensor tr(M) I - M of skimage.measure.regionprops.
+    cen = [p - m[seg] for p, m in zip(pos, means)]
+    mom = jnp.stack([
+        jnp.stack([jax.ops.segment_sum(cen[i] * cen[j], seg, num_segments=k) for j in range(3)], -1)
+        for i in range(3)], -2)[:capacity] / jnp.maximum(n, 1)[:, None, None]
+    inertia = jnp.trace(mom, axis1=-2, axis2=-1)[:, None, None] * jnp.eye(3, dtype=dt) - mom
+    ev, vec = eigh_small(inertia)
+    cols += [ev[:, 2], ev[:, 1], ev[:, 0]]  # descending, as skimage's inertia_tensor_eigvals
+    axis = vec[:, :, 0]  # smallest inertia: the long axis; sign fixed so its largest entry is > 0
+    big = jnp.take_along_axis(axis, jnp.argmax(jnp.abs(axis), -1)[:, None], -1)
+    axis = axis * jnp.where(big < 0, -1.0, 1.0).astype(dt)
+    cols += [axis[:, 0], axis[:, 1], axis[:, 2]]
+    cols.append(_surface_area(lab, seg, k, spacing, dt)[:capacity])
     valid = n > 0
     table = jnp.where(valid[:, None], jnp.stack(cols, axis=-1), jnp.nan)
     present = jnp.max(lab, initial=0)
     return table, valid, present > capacity
 
 
-@register(family="label3d", takes=LabelVolume, gives=RegionProps, differentiable=False, refs=_REFS)
+@register(family="label3d", takes=LabelVolume, gives=RegionProps, differentiable=False, refs=_PROPS_REFS)
 def regionprops3d(labels: LabelVolume, /, *, capacity: int = 128) -> RegionProps:
-    """Per-label volume, voxel count, centroid and bounding box of a label volume.
+    """Per-label volume, voxel count, centroid, bounding box, inertia axes and surface area.
 
     Columns: ``volume`` (voxels times ``dz dy dx``, in ``unit^3``), ``voxels``,
-    ``centroid_z/y/x`` (mean voxel centre in ``unit``: index times spacing), and the
+    ``centroid_z/y/x`` (mean voxel centre in ``unit``: index times spacing), the
     bounding box ``bbox_z0, bbox_y0, bbox_x0`` (first voxel index) ``bbox_z1, bbox_y1,
-    bbox_x1`` (one past the last, as ``skimage.measure.regionprops``' ``bbox``).
+    bbox_x1`` (one past the last, as ``skimage.measure.regionprops``' ``bbox``);
+    ``inertia_0 >= inertia_1 >= inertia_2``, the eigenvalues of the inertia tensor
+    ``tr(M) I - M`` of the central second moments ``M`` per voxel in ``unit^2`` (skimage's
+    ``inertia_tensor_eigvals`` with ``spacing``); ``axis_z/y/x``, the unit long axis (the
+    eigenvector of ``inertia_2``; sign: its largest entry is positive; arbitrary within a
+    degenerate eigenvalue pair); and ``surface_area`` in ``unit^2``.
+
+    Surface area is the Cauchy-Crofton estimate from the 13 line directions of the 3x3x3
+    neighbourhood: twice the direction-weighted mean of (boundary crossings of lattice lines
+    along ``d``) x (cross-section ``V / |d|`` of one line), with each direction weighted by its
+    Voronoi share of the sphere in physical space (Ohser and Muecklich 2000, ch. 5). It is
+    unbiased on average over orientations (balls of radius 9 mm: 0.4 % with unit voxels, 2.6 %
+    at spacing (2, 1, 0.5); the null, exposed voxel faces, reads ~45 % high, and marching
+    cubes on the mask 9-14 % high), but a plane's reading depends on its orientation: from
+    -7 % to +2 % with cubic voxels and from -20 % to +12 % at a spacing ratio of 4. Small or
+    axis-aligned boxes read low (a 10 x 12 x 14 voxel box: -12 %).
 
     Args:
       labels: ``LabelVolume`` ``(D, H, W)``.
@@ -242,7 +327,7 @@ def regionprops3d(labels: LabelVolume, /, *, capacity: int = 128) -> RegionProps
         when the labelling itself was truncated, ``labels.truncated``).
 
     Returns:
-      ``RegionProps`` ``(capacity, 11)``; rows of absent labels are NaN with
+      ``RegionProps`` ``(capacity, 18)``; rows of absent labels are NaN with
       ``valid = False``.
 
     Equal to ``skimage.measure.regionprops`` (``area``, ``centroid`` times spacing, ``bbox``)
