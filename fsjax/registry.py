@@ -158,6 +158,7 @@ class OpSpec:
     input_names: tuple[str, ...]
     params: dict[str, Any]  # keyword parameter -> default
     module: str
+    infinite_ok: bool = False  # inputs may hold +-inf (not NaN): signed distances, "empty set"
 
     @property
     def n_inputs(self) -> int:
@@ -319,6 +320,7 @@ def register(
     differentiable: bool = False,
     refs: Sequence[str] = (),
     name: str | None = None,
+    infinite_ok: bool = False,
 ) -> Callable[[Callable], Callable]:
     """Register a function as an fsjax op.
 
@@ -332,6 +334,8 @@ def register(
         the contract suite checks ``jax.grad`` against finite differences.
       refs: references (papers, textbooks) the implementation follows.
       name: registry name; defaults to the function name.
+      infinite_ok: the op gives a defined result for ``+-inf`` in its inputs' float fields
+        (e.g. a signed distance of ``+inf``, the empty set); NaN is still refused.
 
     Returns the op wrapped with eager input validation (sort, NaN), otherwise
     identical to the function.
@@ -399,7 +403,7 @@ def register(
                         f"{opname}: argument {pname!r} has batch shape {bshape} in front of one "
                         f"{sort.__name__}; ops take one instance, batch with jax.vmap"
                     )
-                arg.check(op=opname, arg=pname)
+                arg.check(op=opname, arg=pname, allow_inf=infinite_ok)
             # a traced parameter that an eager call would refuse (check_range & co. in the op)
             # poisons the output instead of giving a plausible number computed from it
             with traced_checks(kwargs.values()) as bad:
@@ -422,6 +426,7 @@ def register(
             input_names=input_names,
             params=params,
             module=fn.__module__,
+            infinite_ok=bool(infinite_ok),
         )
         _REGISTRY[opname] = spec
         wrapper.spec = spec  # type: ignore[attr-defined]

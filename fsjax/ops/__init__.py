@@ -62,4 +62,5 @@ from .volume._isosurface import *  # noqa: F403
 from .volume._label3d import *  # noqa: F403
 from .volume._morphology3d import *  # noqa: F403
 from .volume._project3d import *  # noqa: F403
+from .volume._sdf import *  # noqa: F403
 from .volume._tsdf import *  # noqa: F403

@@ -32,6 +32,8 @@ from ._pool import icosphere as icosphere
 from ._pool import register_pool as register_pool
 from ._pool import standard_input as standard_input
 from ._pool import standard_scene as standard_scene
+from ._sdf import SDF_KINDS as SDF_KINDS
+from ._sdf import sdf_volume as sdf_volume
 from ._structured_light import capture_geometry as capture_geometry
 from ._structured_light import capture_patterns as capture_patterns
 from ._structured_light import decode_depth as decode_depth

@@ -150,18 +150,26 @@ class Sort(eqx.Module):
             arr = arr.astype(dtype, copy=False)
         return arr
 
-    def check(self, *, op: str, arg: str) -> None:
+    def check(self, *, op: str, arg: str, allow_inf: bool = False) -> None:
         """Eager validation of an op input (skipped for traced values).
 
         Raises ``ValueError`` naming ``op`` and ``arg`` when a float field holds NaN
-        or infinity.
+        or infinity (NaN only, with ``allow_inf``: ops registered ``infinite_ok``).
         """
         for name in self._float_fields:
             v = getattr(self, name)
             if v is None or not is_concrete(v):
                 continue
             if _has_nonfinite(v):
-                n_bad = int(np.sum(~np.isfinite(np.asarray(v))))
+                a = np.asarray(v)
+                if allow_inf:
+                    n_nan = int(np.sum(np.isnan(a)))
+                    if n_nan:
+                        raise ValueError(
+                            f"{op}: argument '{arg}' ({type(self).__name__}.{name}) contains "
+                            f"{n_nan} NaN value(s); {op} accepts +-inf but not NaN")
+                    continue
+                n_bad = int(np.sum(~np.isfinite(a)))
                 raise ValueError(
                     f"{op}: argument '{arg}' ({type(self).__name__}.{name}) contains "
                     f"{n_bad} NaN/inf value(s); fsjax ops need finite input "
