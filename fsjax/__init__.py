@@ -35,7 +35,7 @@ _NAMES = {
     **{n: ".registry" for n in ("IntKnob", "LinKnob", "LogKnob", "OpSpec", "UnknownOpError", "compiled_calls",
                                 "families", "get_op", "list_ops", "register")},
     **{n: ".types" for n in ("HSV", "Camera", "Color", "Contour", "Depth", "Edges1D", "Feature", "Fit",
-                             "Gaussians", "Image", "Lab", "Labels", "Match", "Mesh", "Points", "Region",
+                             "Gaussians", "Image", "Lab", "Labels", "Match", "Match3D", "Mesh", "Points", "Region",
                              "RegionProps", "Signal", "Sort", "Volume", "LabelVolume", "LightStack", "NormalMap",
                              "FringeStack", "GrayStack", "PointValues", "PointLabels", "StructuredLightRig",
                              "MeshTopology", "DepthStack")},
@@ -111,6 +111,7 @@ if TYPE_CHECKING:  # static analysers see the eager imports
     from .types import Labels as Labels
     from .types import LabelVolume as LabelVolume
     from .types import Match as Match
+    from .types import Match3D as Match3D
     from .types import Mesh as Mesh
     from .types import MeshTopology as MeshTopology
     from .types import Points as Points

@@ -1,4 +1,4 @@
-"""Measurement records: a measured number, matches, region properties, 2-D fits, 1-D edges.
+"""Measurement records: a measured number, matches (2-D and 3-D), region properties, 2-D fits, 1-D edges.
 """
 
 from __future__ import annotations
@@ -10,8 +10,9 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._base import Sort, _as_array
+from .results import reason_message
 
-__all__ = ["Feature", "Match", "RegionProps", "NamedParams", "Fit", "Edges1D", "MeshTopology"]
+__all__ = ["Feature", "Match", "Match3D", "RegionProps", "NamedParams", "Fit", "Edges1D", "MeshTopology"]
 
 
 class NamedParams(eqx.Module):
@@ -92,6 +93,62 @@ class Match(Sort):
     @property
     def batch_shape(self) -> tuple[int, ...]:
         return tuple(self.row.shape[:-1])
+
+
+class Match3D(Sort):
+    """One found instance of a 3-D template: a similarity pose, a score, ``valid`` and a ``reason``.
+
+    The pose maps template coordinates to scene coordinates,
+    ``scene = scale * R @ p + t``, with ``p`` and ``t`` in the physical units of the grids
+    as ``(x, y, z)`` (voxel ``[k, i, j]`` of a ``Volume`` sits at ``(j dx, i dy, k dz)``; a
+    point cloud or mesh brought onto a grid keeps that placement). ``R`` ``(*batch, 3, 3)``
+    is a proper rotation (``det = +1``), ``scale`` the isotropic scale (1 for rigid
+    methods), ``score`` the method's own similarity (higher is better; the op states its
+    range). ``valid`` False means the method did not find the template (or its answer is
+    ambiguous); then ``R``, ``t``, ``scale`` hold NaN and ``reason`` says why, as a code of
+    :class:`fsjax.types.RESULTS` (``not_found``, ``degenerate``, ``invalid_input``,
+    ``max_iterations``; ``ok`` when valid). ``iterations`` counts the refinement steps (0
+    for closed-form methods). ``m.message`` reads the reason; ``m.apply(p)`` maps template
+    points ``(..., 3)`` into the scene.
+    """
+
+    R: Float[Array, "*batch 3 3"]
+    t: Float[Array, "*batch 3"]
+    scale: Float[Array, "*batch"]
+    score: Float[Array, "*batch"]
+    valid: Bool[Array, "*batch"]
+    reason: Int[Array, "*batch"]
+    iterations: Int[Array, "*batch"]
+    _float_fields = ()  # an invalid match holds NaN by design
+
+    def __init__(self, R: Any, t: Any, score: Any, valid: Any, reason: Any, scale: Any = None,
+                 iterations: Any = 0):
+        self.R = _as_array(R, sort="Match3D", field="R", kind="float", min_ndim=2, trailing=(3, 3))
+        batch, dt = self.R.shape[:-2], self.R.dtype
+        self.t = _as_array(t, sort="Match3D", field="t", kind="float", min_ndim=1, trailing=(3,))
+        if self.t.shape[:-1] != batch:
+            raise ValueError(f"Match3D(t=...): batch shape {self.t.shape[:-1]} does not match R {batch}")
+        self.score = jnp.broadcast_to(jnp.asarray(score, dt), batch)
+        self.scale = jnp.broadcast_to(jnp.asarray(1.0 if scale is None else scale, dt), batch)
+        self.valid = jnp.broadcast_to(_as_array(valid, sort="Match3D", field="valid", kind="bool", min_ndim=0),
+                                      batch)
+        self.reason = jnp.broadcast_to(_as_array(reason, sort="Match3D", field="reason", kind="int", min_ndim=0),
+                                       batch)
+        self.iterations = jnp.broadcast_to(jnp.asarray(iterations, jnp.int32), batch)
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        return tuple(self.R.shape[:-2])
+
+    @property
+    def message(self) -> Any:
+        """Text of ``reason`` (concrete records; an array of texts when batched)."""
+        return reason_message(self.reason)
+
+    def apply(self, p: Any) -> Array:
+        """Template points ``p (..., 3)`` mapped into the scene: ``scale R p + t``."""
+        p = jnp.asarray(p)
+        return self.scale[..., None] * jnp.einsum("...ij,...j->...i", self.R, p) + self.t
 
 
 class RegionProps(Sort):

@@ -1,0 +1,207 @@
+"""Transforms between the 3-D structures: points -> voxels, and the ``to_points`` / ``to_voxel``
+entry points that accept any structure (the rows of the 3-D matching grid).
+
+Conventions:
+
+* **Grid**: ``shape = (D, H, W)`` voxels, voxel ``[k, i, j]`` centred at
+  ``origin + (j dx, i dy, k dz)`` with ``spacing = (dz, dy, dx)`` and ``origin = (x0, y0, z0)``
+  in the input's unit -- the placement of :func:`fsjax.ops.mesh_to_volume` and
+  :func:`fsjax.ops.tsdf_fuse`, so a structure brought onto a grid here lands where those put it.
+* **Splatting** (:func:`points_to_volume`): each valid point adds its weight to the 8 voxels
+  around it with trilinear weights (the adjoint of trilinear interpolation), so the volume's
+  sum equals the total weight of the points inside the grid; a point outside the grid adds
+  nothing to the voxels it misses (the op reports nothing of it: size the grid to hold the
+  structure). The result is points per voxel, not a density per unit volume.
+* What each structure becomes is stated by :func:`to_points` and :func:`to_voxel`; these two
+  are plain functions (they take any of several sorts), not registered ops. Existing ops do
+  the work wherever one exists (``sample_surface``, ``depth_to_points``, ``mesh_to_volume``).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from ..._checks import check_choice, check_static_int
+from ...registry import register
+from ...types import Depth, Gaussians, Mesh, Points, Volume
+from .._common import check_grid
+from ..measure3d._camera import depth_to_points
+from ..mesh._voxelize import mesh_to_volume
+from ..points._search import sample_surface
+
+__all__ = ["points_to_volume", "to_points", "to_voxel"]
+
+
+@functools.partial(jax.jit, static_argnames=("shape", "spacing"))
+def _splat_core(xyz, w, origin, *, shape, spacing):
+    D, H, W = shape
+    dz, dy, dx = spacing
+    dt = xyz.dtype
+    u = (xyz - origin) / jnp.asarray([dx, dy, dz], dt)  # (x, y, z) in voxels
+    base = jnp.floor(u)
+    f = u - base
+    b = base.astype(jnp.int32)
+    out = jnp.zeros(D * H * W, dt)
+    for oz in (0, 1):
+        for oy in (0, 1):
+            for ox in (0, 1):
+                j, i, k = b[:, 0] + ox, b[:, 1] + oy, b[:, 2] + oz
+                wt = (jnp.where(ox, f[:, 0], 1 - f[:, 0]) * jnp.where(oy, f[:, 1], 1 - f[:, 1])
+                      * jnp.where(oz, f[:, 2], 1 - f[:, 2]))
+                inside = (j >= 0) & (j < W) & (i >= 0) & (i < H) & (k >= 0) & (k < D)
+                idx = jnp.where(inside, (k * H + i) * W + j, 0)
+                out = out.at[idx].add(jnp.where(inside, wt * w, 0.0))
+    return out.reshape(D, H, W)
+
+
+@register(family="match3d", takes=Points, gives=Volume, differentiable=True, refs=[
+    "J. Westover, Footprint evaluation for volume rendering, SIGGRAPH 1990 (splatting)",
+    "R. W. Hockney, J. W. Eastwood, Computer Simulation Using Particles, McGraw-Hill 1981 "
+    "(cloud-in-cell assignment)"])
+def points_to_volume(pts: Points, /, *, shape: tuple[int, int, int] = (16, 16, 16),
+                     spacing: tuple[float, float, float] = (1.0, 1.0, 1.0),
+                     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Volume:
+    """Splat a point cloud onto a voxel grid with trilinear weights (cloud-in-cell).
+
+    Each valid point ``p`` adds ``(1 - fx)(1 - fy)(1 - fz)``-style weights to the 8 voxels
+    around it (``f`` its fractional voxel position): the adjoint of trilinear interpolation
+    (Hockney and Eastwood's cloud-in-cell assignment). The volume sums to the number of valid
+    points inside the grid, and its centre of mass is the points' centroid exactly (the
+    weights interpolate linearly), so a sub-voxel move of the cloud moves the volume's
+    moments by the same amount.
+
+    Args:
+      pts: ``Points`` ``(N, 3)`` (one cloud; batch with ``jax.vmap``); invalid slots add nothing.
+      shape: ``(D, H, W)`` voxels (static ints >= 1; default ``(16, 16, 16)``).
+      spacing: voxel size ``(dz, dy, dx)`` in the points' unit (static, positive).
+      origin: ``(x0, y0, z0)``, the position of voxel ``[0, 0, 0]``'s centre (static).
+
+    Returns:
+      ``Volume`` ``(D, H, W)`` with ``spacing``: points per voxel (trilinear shares).
+      Differentiable in the point positions (piecewise linear).
+
+    Example:
+      One point at the centre of 8 voxels gives 1/8 to each; a point on a voxel centre all to
+      it; the total is the number of points and the centre of mass is their centroid:
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> pts = fsjax.Points(jnp.asarray([[1.5, 1.5, 1.5], [2.0, 1.0, 3.0]]))
+      >>> v = fsjax.ops.points_to_volume(pts, shape=(5, 4, 4))
+      >>> float(v.data[1, 1, 1]), float(v.data[2, 2, 2]), float(v.data[3, 1, 2]), float(v.data.sum())
+      (0.125, 0.125, 1.0, 2.0)
+      >>> k, i, j = jnp.mgrid[0:5, 0:4, 0:4]
+      >>> [float((v.data * a).sum() / v.data.sum()) for a in (j, i, k)]
+      [1.75, 1.25, 2.25]
+    """
+    op = "points_to_volume"
+    if not isinstance(pts, Points):
+        raise TypeError(f"{op}: argument 'pts' must be Points; got {type(pts).__name__}")
+    if pts.xyz.ndim != 2:
+        raise ValueError(f"{op}: argument 'pts' must be one cloud (batch with jax.vmap); got xyz of shape "
+                         f"{pts.xyz.shape}")
+    shp, sp, org = check_grid(op, shape, spacing, origin)
+    dt = pts.xyz.dtype
+    w = pts.valid.astype(dt)
+    xyz = jnp.where(pts.valid[:, None], pts.xyz, 0.0)
+    return Volume(_splat_core(xyz, w, jnp.asarray(org, dt), shape=shp, spacing=sp), spacing=sp)
+
+
+def to_points(x: Any, /, *, n: int = 4096, level: float = 0.5, seed: int = 0) -> Points:
+    """Any 3-D structure as a point set (the "points" column of the matching grid).
+
+    * ``Points``: itself.
+    * ``Mesh``: ``n`` area-weighted surface samples with normals (:func:`sample_surface`).
+    * ``Depth``: every pixel back-projected (:func:`depth_to_points`; no-return pixels invalid).
+    * ``Volume``: the centres of the voxels whose value is above ``level`` (``(x, y, z)`` =
+      ``(j dx, i dy, k dz)``), one slot per voxel, the others invalid.
+    * ``Gaussians``: their means (valid where the splat is valid); extents and opacities are
+      dropped.
+
+    Args:
+      x: a ``Points``, ``Mesh``, ``Depth``, ``Volume`` or ``Gaussians`` (one instance).
+      n: samples drawn from a mesh (static int >= 1).
+      level: the volume threshold (volumes only).
+      seed: seed of the mesh sampling.
+
+    Example:
+      >>> import jax.numpy as jnp, fsjax
+      >>> vol = fsjax.Volume(jnp.zeros((2, 3, 4)).at[1, 2, 3].set(1.0), spacing=(2.0, 1.0, 0.5))
+      >>> p = fsjax.ops.to_points(vol)
+      >>> p.xyz[p.valid].tolist()
+      [[1.5, 2.0, 2.0]]
+    """
+    if isinstance(x, Points):
+        return x
+    if isinstance(x, Mesh):
+        return sample_surface(x, n=n, seed=seed)
+    if isinstance(x, Depth):
+        return depth_to_points(x)
+    if isinstance(x, Volume):
+        d = x.data
+        if d.ndim != 3:
+            raise ValueError(f"to_points: argument 'x' must be one volume; got data of shape {d.shape}")
+        dz, dy, dx = x.spacing
+        k, i, j = jnp.meshgrid(*(jnp.arange(s, dtype=d.dtype) for s in d.shape), indexing="ij")
+        xyz = jnp.stack([j * dx, i * dy, k * dz], -1).reshape(-1, 3)
+        return Points(xyz, valid=(d > level).reshape(-1))
+    if isinstance(x, Gaussians):
+        return Points(x.means, valid=x.valid)
+    raise TypeError(f"to_points: argument 'x' must be Points, Mesh, Depth, Volume or Gaussians; got "
+                    f"{type(x).__name__}")
+
+
+def to_voxel(x: Any, /, spacing: tuple[float, float, float], *, shape: tuple[int, int, int] | None = None,
+             origin: tuple[float, float, float] = (0.0, 0.0, 0.0), mesh_kind: str = "surface",
+             n: int = 8192, seed: int = 0) -> Volume:
+    """Any 3-D structure on a voxel grid of ``spacing`` (the "voxel" column of the matching grid).
+
+    * ``Volume``: itself, if its spacing is ``spacing`` (a resampling is not done here: a
+      different spacing raises ``ValueError``).
+    * ``Points``: trilinear splat (:func:`points_to_volume`).
+    * ``Depth``: back-projected (:func:`depth_to_points`), then splatted.
+    * ``Mesh``: ``mesh_kind="surface"`` (default): ``n`` area-weighted surface samples splatted,
+      a surface density (cheap: ``O(n)``); ``"occupancy"`` or ``"sdf"``: the exact inside test /
+      signed distance of :func:`mesh_to_volume` (``O(voxels x faces)``: small meshes only).
+    * ``Gaussians``: not yet (their extents need a footprint splat); ``TypeError``.
+
+    Args:
+      x: the structure (one instance).
+      spacing: ``(dz, dy, dx)`` in the structure's unit.
+      shape: ``(D, H, W)``; required for everything but a ``Volume``.
+      origin: ``(x0, y0, z0)``, the centre of voxel ``[0, 0, 0]``.
+      mesh_kind: ``"surface"``, ``"occupancy"`` or ``"sdf"`` (meshes only).
+      n: mesh surface samples (``mesh_kind="surface"``).
+      seed: seed of the mesh sampling.
+
+    Example:
+      >>> import jax.numpy as jnp, fsjax
+      >>> v = fsjax.ops.to_voxel(fsjax.Points(jnp.asarray([[1.0, 2.0, 0.0]])), (1.0, 1.0, 1.0), shape=(2, 3, 3))
+      >>> float(v.data[0, 2, 1]), float(v.data.sum())
+      (1.0, 1.0)
+    """
+    op = "to_voxel"
+    sp = tuple(float(s) for s in spacing)
+    if isinstance(x, Volume):
+        if tuple(x.spacing) != sp:
+            raise ValueError(f"{op}: argument 'x' is a Volume of spacing {x.spacing}, not {sp}; resampling is not "
+                             f"done here")
+        return x
+    if isinstance(x, Gaussians):
+        raise TypeError(f"{op}: argument 'x': Gaussians -> voxel is not implemented yet (needs a footprint "
+                        f"splat); use to_points(x) for their means")
+    if shape is None:
+        raise ValueError(f"{op}: argument 'shape' is required for a {type(x).__name__}")
+    if isinstance(x, Mesh):
+        check_choice(op, "mesh_kind", mesh_kind, ("surface", "occupancy", "sdf"))
+        if mesh_kind != "surface":
+            return mesh_to_volume(x, shape=shape, spacing=sp, origin=origin, kind=mesh_kind)
+        x = sample_surface(x, n=check_static_int(op, "n", n, lo=1), seed=seed)
+    elif isinstance(x, Depth):
+        x = depth_to_points(x)
+    if not isinstance(x, Points):
+        raise TypeError(f"{op}: argument 'x' must be Volume, Points, Mesh or Depth; got {type(x).__name__}")
+    return points_to_volume(x, shape=shape, spacing=sp, origin=origin)
