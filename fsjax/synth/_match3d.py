@@ -10,8 +10,10 @@ voxel positions ``(x, y, z) = (j, i, k)``.
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -184,14 +186,15 @@ def _on_grid(x: Any, size: int, sigma: float) -> Volume:
 
 
 def run_grid_cell(structure: str, method: str, *, seed: int = 0, with_object: bool = True,
-                  dtype: Any = None) -> dict:
+                  dtype: Any = None, timing: bool = False) -> dict:
     """Run one cell of the 3-D matching grid on its scene; return the measured figures.
 
     Returns a dict: ``error`` (voxels: distance between the recovered and the true template
     centre in the scene; for ``moments_pose3d`` the rotation error in degrees), ``null`` (the
     same error for the cell's null: the scene's centre of mass for translations, the identity
     rotation for a pose), ``valid``, ``score``, ``reason`` (text), ``match`` (the record) and,
-    for the scale method, ``scale_error``.
+    for the scale method, ``scale_error``; ``time_first_s`` (the method's first call on the
+    grid: trace + compile + run) and, with ``timing=True``, ``time_s`` (a second call: run only).
     """
     from .. import ops
 
@@ -212,13 +215,23 @@ def run_grid_cell(structure: str, method: str, *, seed: int = 0, with_object: bo
     if structure != "voxel":
         scene, tpl = _on_grid(scene, size, 1.0), _on_grid(tpl, ts or size, 1.0)
     if method == "ncc3d+lk_translation3d":
-        m = ops.lk_translation3d(scene, tpl, init=ops.ncc3d(scene, tpl))
+        def call():
+            return ops.lk_translation3d(scene, tpl, init=ops.ncc3d(scene, tpl))
     elif pose:
-        m = ops.moments_pose3d(scene, tpl, level=0.2 * float(jnp.max(tpl.data)))
+        def call():
+            return ops.moments_pose3d(scene, tpl, level=0.2 * float(jnp.max(tpl.data)))
     else:
-        m = getattr(ops, method)(scene, tpl)
+        def call():
+            return getattr(ops, method)(scene, tpl)
+    t0 = time.perf_counter()
+    m = jax.block_until_ready(call())
+    t1 = time.perf_counter()
+    if timing:
+        jax.block_until_ready(call())
+    t2 = time.perf_counter()
     c_t = np.full(3, ((ts or size) - 1) / 2.0)
-    out = {"valid": bool(m.valid), "score": float(m.score), "reason": str(m.message), "match": m}
+    out = {"valid": bool(m.valid), "score": float(m.score), "reason": str(m.message), "match": m,
+           "time_first_s": t1 - t0, "time_s": (t2 - t1) if timing else float("nan")}
     if pose:
         out["error"] = _rot_err_deg(np.asarray(m.R), truth["R"]) if out["valid"] else float("nan")
         out["null"] = _rot_err_deg(np.eye(3), truth["R"])
