@@ -42,6 +42,8 @@ SELECTION = [
     ("sub-voxel position after a coarse find", "ncc3d then lk_translation3d", "0.01-0.08 voxel; needs the "
      "same intensities in scene and template"),
     ("position and size", "lm_translation_scale3d (from ncc3d)", "scale to <1 %; LM on intensities"),
+    ("a small rotation about z after a coarse find (+-3 degrees)", "lm_rotation_z3d (from ncc3d)",
+     "angle and position by LM on intensities; tricubic sampling"),
     ("any rotation, the object alone", "moments_pose3d", "closed form; refuses clutter, symmetric or "
      "skew-free objects (valid=False)"),
 ]
@@ -79,7 +81,8 @@ def main() -> None:
          "brought onto the grid by `fsjax.ops.to_voxel` (mesh: 20,000 surface samples, independent of the "
          "template's) and smoothed by `gaussian3d(sigma=1)`.", "",
          "Per cell: **error** (voxels: recovered vs true template centre; degrees for `moments_pose3d`), "
-         "**null** (the scene's centre of mass; the identity rotation), **closed** (the same scene without "
+         "**null** (the scene's centre of mass; the identity rotation; for `lm_rotation_z3d` the scene is turned by "
+         "+-3 degrees about z and the start is angle 0), **closed** (the same scene without "
          "the object gives `valid=False`), and the method's time: first call (trace + compile + run) / second "
          "call (run only). `tests/ops/test_match3d.py::test_grid_cell` asserts each cell against the "
          "tolerance shown.", "",
@@ -95,12 +98,14 @@ def main() -> None:
                 cells.append(MATCH3D_NOT_YET[(s, m)])
                 continue
             res, closed = rows[(s, m)]
-            unit = "deg" if m == "moments_pose3d" else "vox"
+            unit = "deg" if m in ("moments_pose3d", "lm_rotation_z3d") else "vox"
             e = [r["error"] for r in res]
             err = f"{np.mean(e):.3f}" + (f" (max {np.max(e):.3f})" if len(e) > 1 else "")
             extra = ""
             if "scale_error" in res[0]:
                 extra = f"; scale error {np.mean([r['scale_error'] for r in res]):.4f}"
+            if "centre_error" in res[0]:
+                extra = f"; centre {np.mean([r['centre_error'] for r in res]):.3f} vox"
             cells.append(f"**{err} {unit}** (tol {MATCH3D_CELL_TOL[(s, m)]}){extra}; null "
                          f"{np.mean([r['null'] for r in res]):.2f}; closed {'yes' if all(closed) else 'NO'}; "
                          f"{res[0]['time_first_s']:.2f} s / {res[0]['time_s']:.3f} s")
@@ -110,7 +115,7 @@ def main() -> None:
     L += [f"| {a} | `{b}` | {c} |" for a, b, c in SELECTION]
     L += ["", "## Not yet (issue 17)", "",
           "Methods: shape-based 3-D (gradient directions), chamfer (exact EDT), generalised Hough 3-D, "
-          "curvature / shape-index matching, Fourier-Mellin about z, Gauss-Newton rotation about z, "
+          "curvature / shape-index matching, Fourier-Mellin about z (so `lm_rotation_z3d` starts from angle 0 here), "
           "parametric Hough (planes, spheres), spherical-harmonic descriptor, Harris-3D / spin images / SHOT "
           "+ RANSAC; an NCC pyramid. Structures: depth maps (partial views) and Gaussians (footprint splat). "
           "Cross-structure registration (`register_cross`, `fuse_to_voxel`). The existing ICP variants "

@@ -17,6 +17,14 @@ from ._inspection import step_edge as step_edge
 from ._inspection import tilted_edge as tilted_edge
 from ._lidar import LIDAR_OBJECTS as LIDAR_OBJECTS
 from ._lidar import lidar_scene as lidar_scene
+from ._match3d import MATCH3D_CELL_TOL as MATCH3D_CELL_TOL
+from ._match3d import MATCH3D_METHODS as MATCH3D_METHODS
+from ._match3d import MATCH3D_NOT_YET as MATCH3D_NOT_YET
+from ._match3d import MATCH3D_STRUCTURES as MATCH3D_STRUCTURES
+from ._match3d import match3d_object as match3d_object
+from ._match3d import match3d_scene as match3d_scene
+from ._match3d import rotation_zyx as rotation_zyx
+from ._match3d import run_grid_cell as run_grid_cell
 from ._multiview import bundle_scene as bundle_scene
 from ._particles import particle_scene as particle_scene
 from ._phantom import CT_MATERIALS as CT_MATERIALS
@@ -43,11 +51,3 @@ from ._workpiece import PART_KINDS as PART_KINDS
 from ._workpiece import alignment_scene as alignment_scene
 from ._workpiece import render_part as render_part
 from ._workpiece import workpiece_template as workpiece_template
-from ._match3d import match3d_object as match3d_object
-from ._match3d import match3d_scene as match3d_scene
-from ._match3d import rotation_zyx as rotation_zyx
-from ._match3d import run_grid_cell as run_grid_cell
-from ._match3d import STRUCTURES as MATCH3D_STRUCTURES
-from ._match3d import METHODS as MATCH3D_METHODS
-from ._match3d import NOT_YET as MATCH3D_NOT_YET
-from ._match3d import CELL_TOL as MATCH3D_CELL_TOL

@@ -7,14 +7,12 @@ The scenes are rendered with the SDF tracer of :mod:`fsjax.render.sdf`; plain fu
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..ops import photometric_stereo
 from ..types import LightStack
-
 
 # ---------------------------------------------------------------------------
 # ground-truth scenes (plain functions, not ops)

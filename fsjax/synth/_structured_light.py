@@ -12,9 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..ops import absolute_phase, graycode_decode, gray_frames, triangulate_column, wrapped_phase
+from ..ops import absolute_phase, gray_frames, graycode_decode, triangulate_column, wrapped_phase
 from ..types import Camera, FringeStack, GrayStack, Image, StructuredLightRig
-
 
 # ---------------------------------------------------------------------------
 # scenes and captures (plain functions, not ops)

@@ -203,7 +203,7 @@ def test_grid_cell(structure, method):
     and the same scene without the object gives valid=False."""
     r = run_grid_cell(structure, method)
     tol = MATCH3D_CELL_TOL[(structure, method)]
-    unit = "deg" if method == "moments_pose3d" else "voxel"
+    unit = "deg" if method in ("moments_pose3d", "lm_rotation_z3d") else "voxel"
     print(f"\ngrid cell ({structure}, {method}): error {r['error']:.4f} {unit} (tol {tol}), null {r['null']:.3f}, "
           f"score {r['score']:.3f}" + (f", scale error {r['scale_error']:.4f}" if "scale_error" in r else ""))
     assert r["valid"], r["reason"]
