@@ -2,6 +2,7 @@
 
     python tools/gen_matching_grid.py            # float64, as the tests
     python tools/gen_matching_grid.py --seeds 3  # mean and max over 3 scenes per cell
+    python tools/gen_matching_grid.py --seeds 4 --clean   # voxel row without noise and clutter: print only
 
 Each cell (structure, method) runs on a scene of the bundled bunny (``fsjax.synth.match3d_scene``:
 48^3 voxels, spacing 1, six sphere/cube shells of clutter, noise 1 % of the peak on voxel scenes),
@@ -53,7 +54,17 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=1)
     ap.add_argument("--out", default=str(ROOT / "docs" / "matching_grid.md"))
+    ap.add_argument("--clean", action="store_true", help="voxel cells without noise and clutter; print, write nothing")
     args = ap.parse_args()
+    if args.clean:
+        for m in MATCH3D_METHODS:
+            res = [run_grid_cell("voxel", m, seed=k, clean=True) for k in range(args.seeds)]
+            e = [r["error"] for r in res]
+            extra = "".join(f"  {key} mean {np.mean([r[key] for r in res]):.4f}" for key in ("scale_error", "centre_error")
+                            if key in res[0])
+            print(f"voxel clean {m:24s} error mean {np.mean(e):.4f} min {np.min(e):.4f} max {np.max(e):.4f}{extra}",
+                  flush=True)
+        return
     load0 = os.getloadavg()[0]
     rows = {}
     for s in MATCH3D_STRUCTURES:

@@ -190,7 +190,7 @@ def _on_grid(x: Any, size: int, sigma: float) -> Volume:
 
 
 def run_grid_cell(structure: str, method: str, *, seed: int = 0, with_object: bool = True,
-                  dtype: Any = None, timing: bool = False) -> dict:
+                  dtype: Any = None, timing: bool = False, clean: bool = False) -> dict:
     """Run one cell of the 3-D matching grid on its scene; return the measured figures.
 
     Returns a dict: ``error`` (voxels: distance between the recovered and the true template
@@ -198,7 +198,8 @@ def run_grid_cell(structure: str, method: str, *, seed: int = 0, with_object: bo
     degrees, with the centre's error in ``centre_error``), ``null`` (the
     same error for the cell's null: the scene's centre of mass for translations, the identity
     rotation for a pose), ``valid``, ``score``, ``reason`` (text), ``match`` (the record) and,
-    for the scale method, ``scale_error``; ``time_first_s`` (the method's first call on the
+    ``clean=True`` runs the cell's scene without noise and clutter (the method's own floor).
+    For the scale method, ``scale_error``; ``time_first_s`` (the method's first call on the
     grid: trace + compile + run) and, with ``timing=True``, ``time_s`` (a second call: run only).
     """
     from .. import ops
@@ -210,8 +211,8 @@ def run_grid_cell(structure: str, method: str, *, seed: int = 0, with_object: bo
     pose = method in ("moments_pose3d", "lm_rotation_z3d")
     ts = None if method == "phase_correlation3d" else (32 if method == "moments_pose3d" else 24)
     kw = dict(shift=rng.uniform(-5, 5, 3), seed=seed, with_object=with_object, dtype=dtype,
-              template_size=ts, structure=structure, noise=0.01 if structure == "voxel" else 0.0,
-              clutter=0 if method == "moments_pose3d" else 6)
+              template_size=ts, structure=structure, noise=0.01 if structure == "voxel" and not clean else 0.0,
+              clutter=0 if method == "moments_pose3d" or clean else 6)
     if method == "moments_pose3d":
         kw["angles_deg"] = rng.uniform(-180, 180, 3)
     if method == "lm_rotation_z3d":  # a +-3 degree turn about z, started from angle 0 (NCC's position)
