@@ -155,33 +155,102 @@ def _select(d, ids, k):
     """The ``k`` smallest entries of each row of ``d`` (B, T), ascending, with their ``ids``.
 
     ``k = 1``: a min and a masked min (the smallest ``ids`` among equal distances); else
-    ``lax.top_k`` of ``-d`` in float32 (ties: the lower column first), ``k`` arg-min passes in
-    float64 (XLA's fast CPU top_k is float32 only). All deterministic. (An earlier
-    version used ``k`` arg-min passes; at 20,000 x 144 candidates, k = 10, ``top_k`` took
-    39 ms against 424 ms for the passes, float32, same process.)
+    ``lax.top_k`` of ``-d`` in float32 (ties: the lower column first). float64: XLA's fast CPU
+    ``top_k`` is float32 only, so :func:`_select_f64` selects on the float32-rounded distances
+    and restores the exact float64 order (same answer as ``k`` arg-min passes, which it falls
+    back to for the rows where rounding makes the selection ambiguous). All deterministic.
+    (Measured: at 20,000 x 144 candidates, k = 10, float32 ``top_k`` took 39 ms against 424 ms
+    for ``k`` arg-min passes; at 10,000 x 256, k = 16, float64, the passes took 185 ms of a
+    200 ms kNN call, ``benchmarks/profile_knn.py``.)
     """
+    v, i, ok = _select_flag(d, ids, k)
+    if ok is None:
+        return v, i
+    vp, ip = _select_passes(d, ids, k)  # (only where a caller cannot re-do the unsafe rows)
+    return jnp.where(ok[:, None], v, vp), jnp.where(ok[:, None], i, ip)
+
+
+def _select_flag(d, ids, k):
+    """As :func:`_select`, returning ``(v, ids, ok)``: ``ok`` (B,) flags the rows whose answer is
+    exact (None: every row). Only float64 rows with a float32 tie across the k-th place are not;
+    the callers re-do those (a certificate that fails, or :func:`_redo`)."""
     if k == 1:
         v = jnp.min(d, axis=1, keepdims=True)
         big = jnp.iinfo(ids.dtype).max
         i = jnp.min(jnp.where(d == v, ids, big), axis=1, keepdims=True)
-        return v, jnp.where(i == big, ids[:, :1], i)
-    if d.dtype != jnp.float32:  # XLA's fast CPU top_k is float32 only; float64: k arg-min passes
-        ar = jnp.arange(d.shape[1], dtype=jnp.int32)
-        inf = jnp.asarray(jnp.inf, d.dtype)
-
-        def body(x, _):
-            i = jnp.argmin(x, axis=1).astype(jnp.int32)
-            v = jnp.take_along_axis(x, i[:, None], axis=1)[:, 0]
-            return jnp.where(ar[None, :] == i[:, None], inf, x), (v, i)
-
-        _, (v, i) = lax.scan(body, d, None, length=k)
-        return v.T, jnp.take_along_axis(ids, i.T, axis=1)
+        return v, jnp.where(i == big, ids[:, :1], i), None
     if k > d.shape[1]:  # fewer candidates than asked: pad with missing ones
         pad = k - d.shape[1]
         d = jnp.concatenate([d, jnp.full((d.shape[0], pad), jnp.inf, d.dtype)], 1)
         ids = jnp.concatenate([ids, jnp.full((ids.shape[0], pad), -1, ids.dtype)], 1)
+    if d.dtype != jnp.float32:
+        return _select_f64(d, ids, k)
     nv, i = lax.top_k(-d, k)
-    return -nv, jnp.take_along_axis(ids, i, axis=1)
+    return -nv, jnp.take_along_axis(ids, i, axis=1), None
+
+
+def _select_passes(d, ids, k):
+    """``k`` arg-min passes (exact in any dtype; slow: ``k`` full passes over the row)."""
+    ar = jnp.arange(d.shape[1], dtype=jnp.int32)
+    inf = jnp.asarray(jnp.inf, d.dtype)
+
+    def body(x, _):
+        i = jnp.argmin(x, axis=1).astype(jnp.int32)
+        v = jnp.take_along_axis(x, i[:, None], axis=1)[:, 0]
+        return jnp.where(ar[None, :] == i[:, None], inf, x), (v, i)
+
+    _, (v, i) = lax.scan(body, d, None, length=k)
+    return v.T, jnp.take_along_axis(ids, i.T, axis=1)
+
+
+def _sort_nearly_sorted(v, ids, rounds: int = 2):
+    """Odd-even transposition passes (``rounds`` even + odd pairs) on the rows of ``v`` (B, n),
+    carrying ``ids``. Returns ``(v, ids, sorted)``: ``sorted`` (B,) flags the rows now ascending.
+    (A ``while_loop`` until sorted was tried: nested in the callers' loops it made the pass 7x
+    slower in XLA:CPU.)"""
+    n = v.shape[1]
+    col = jnp.arange(n)[None, :]
+
+    def step(v, ids, par):
+        left = (col % 2 == par) & (col + 1 < n)
+        right = (col % 2 != par) & (col >= 1)
+        nv = jnp.concatenate([v[:, 1:], v[:, -1:]], 1)
+        pv = jnp.concatenate([v[:, :1], v[:, :-1]], 1)
+        ni = jnp.concatenate([ids[:, 1:], ids[:, -1:]], 1)
+        pi = jnp.concatenate([ids[:, :1], ids[:, :-1]], 1)
+        sl = left & (nv < v)
+        sr = right & (pv > v)
+        return (jnp.where(sl, nv, jnp.where(sr, pv, v)), jnp.where(sl, ni, jnp.where(sr, pi, ids)))
+
+    for _ in range(rounds):
+        v, ids = step(*step(v, ids, 0), 1)
+    return v, ids, jnp.all(v[:, 1:] >= v[:, :-1], axis=1)
+
+
+def _select_f64(d, ids, k):
+    """Exact ``k`` smallest of float64 rows by a float32 ``lax.top_k`` and an exact repair.
+
+    Rounding to float32 is monotone (``a <= b`` implies ``f32(a) <= f32(b)``), so the k-th
+    smallest float32 key ``t`` is the rounding of the true k-th distance, and every true
+    neighbour has a key ``<= t``. The ``k + 1`` smallest keys therefore hold every true
+    neighbour whenever the (k+1)-th key is ``> t`` (no float32 tie across the cut); those
+    ``k + 1`` are then put in exact float64 order (they are in float32 order already: two
+    rounds of transposition passes, a row still out of order is flagged) and the first ``k`` kept. Rows with a tie across the
+    cut (exact duplicates, lattices, or distinct distances that round together) are flagged
+    (``ok`` False) for the caller to re-do exactly. (A ``lax.cond`` to arg-min passes for such
+    batches was tried: it made the whole selection 6x slower even when never taken.)
+    """
+    t = d.shape[1]
+    kk = min(k + 1, t)
+    nv, i = lax.top_k(-d.astype(jnp.float32), kk)
+    v = jnp.take_along_axis(d, i, axis=1)
+    sid = jnp.take_along_axis(ids, i, axis=1)
+    v, sid, ordered = _sort_nearly_sorted(v, sid)
+    v, sid = v[:, :k], sid[:, :k]
+    if kk == k:  # every candidate was selected
+        return v, sid, ordered
+    # a missing k-th (inf): any inf will do
+    return v, sid, ordered & ((nv[:, k] < nv[:, k - 1]) | jnp.isinf(nv[:, k - 1]))
 
 
 def _select_finite(d, ids, k):
@@ -264,7 +333,7 @@ def _pad_refs(ref, valid, block):
     return refp, valp, idp
 
 
-def _brute_queries(refs, q, kk, r2=None):
+def _brute_queries(refs, q, kk, r2=None, _exact=False):
     """Exact kNN (``r2`` None) or radius search of queries ``q`` (B, 3) by a blocked scan.
 
     Returns ``(dist2 (B, kk), idx (B, kk), count (B,))``; idx -1 where dist2 is inf.
@@ -274,7 +343,7 @@ def _brute_queries(refs, q, kk, r2=None):
     inf = jnp.asarray(jnp.inf, q.dtype)
 
     def step(carry, blk):
-        bd, bi, cnt = carry
+        bd, bi, cnt, ok = carry
         r, v, ids = blk
         if q.shape[-1] > 4:  # descriptors: |q|^2 - 2 q.p + |p|^2 (a matrix product), clamped at 0
             d2 = jnp.maximum(jnp.sum(q * q, -1)[:, None] - 2.0 * q @ r.T + jnp.sum(r * r, -1)[None, :], 0.0)
@@ -282,12 +351,21 @@ def _brute_queries(refs, q, kk, r2=None):
             d2 = _sqdist(q[:, None, :], r[None, :, :])
         keep = v[None, :] if r2 is None else v[None, :] & (d2 <= r2)
         d2 = jnp.where(keep, d2, inf)
-        sel = _select if r2 is None else _select_finite
-        bd, bi = sel(jnp.concatenate([bd, d2], 1), jnp.concatenate([bi, jnp.broadcast_to(ids, d2.shape)], 1), kk)
-        return (bd, bi, cnt + keep.sum(axis=1, dtype=jnp.int32)), None
+        dd, ii = jnp.concatenate([bd, d2], 1), jnp.concatenate([bi, jnp.broadcast_to(ids, d2.shape)], 1)
+        if r2 is not None:
+            bd, bi = _select_finite(dd, ii, kk)
+        elif _exact:
+            bd, bi = _select_passes(dd, ii, kk) if kk > 1 else _select(dd, ii, kk)
+        else:
+            bd, bi, okb = _select_flag(dd, ii, kk)
+            ok = ok if okb is None else ok & okb
+        return (bd, bi, cnt + keep.sum(axis=1, dtype=jnp.int32), ok), None
 
-    init = (jnp.full((b, kk), inf), jnp.full((b, kk), -1, jnp.int32), jnp.zeros(b, jnp.int32))
-    (bd, bi, cnt), _ = lax.scan(step, init, (refp, valp, idp))
+    init = (jnp.full((b, kk), inf), jnp.full((b, kk), -1, jnp.int32), jnp.zeros(b, jnp.int32), jnp.ones(b, bool))
+    (bd, bi, cnt, ok), _ = lax.scan(step, init, (refp, valp, idp))
+    if r2 is None and not _exact and q.dtype != jnp.float32 and kk > 1:
+        # rows whose float64 selection was ambiguous (float32 ties): exact arg-min passes, few rows at a time
+        bd, bi = _redo(~ok, min(8, b), lambda sel: _brute_queries(refs, q[sel], kk, _exact=True)[:2], (bd, bi))
     return bd, jnp.where(jnp.isfinite(bd), bi, -1), cnt
 
 
@@ -425,7 +503,8 @@ def _scan_cells(spts, q, start, length, kk, S, r2=None):
 
     Candidates are taken ``S`` per query and step; a ``while_loop`` steps until the
     longest candidate list of the batch is exhausted. Returns the ``kk`` nearest
-    (within ``r2`` if given): ``(dist2 (B, kk), sorted positions (B, kk), count (B,))``.
+    (within ``r2`` if given): ``(dist2 (B, kk), sorted positions (B, kk), count (B,), ok (B,))``;
+    ``ok`` False: a float64 selection was ambiguous (see :func:`_select_f64`), not certified.
     """
     b, nr = start.shape
     cum = jnp.cumsum(length, axis=1)
@@ -434,25 +513,34 @@ def _scan_cells(spts, q, start, length, kk, S, r2=None):
     n_steps = (jnp.max(total) + S - 1) // S
     inf = jnp.asarray(jnp.inf, q.dtype)
     slot = jnp.arange(S, dtype=jnp.int32)
+    off = start - first
+    xyz = (spts[:, 0], spts[:, 1], spts[:, 2])  # coordinates apart: three flat gathers
 
     def body(st):
-        j, bd, bi, cnt = st
-        s = j * S + slot
-        r = jnp.sum(s[None, :, None] >= cum[:, None, :], axis=-1, dtype=jnp.int32)
-        r = jnp.minimum(r, nr - 1)
-        ok = s[None, :] < total[:, None]
-        pos = jnp.take_along_axis(start, r, 1) + s[None, :] - jnp.take_along_axis(first, r, 1)
-        pos = jnp.where(ok, pos, 0)
-        d2 = _sqdist(q[:, None, :], spts[pos])
+        j, bd, bi, cnt, fine = st
+        s = (j * S + slot)[None, :]
+        # slot s lies in the last run whose first slot is <= s (a chain of selects, no gather)
+        o = jnp.broadcast_to(off[:, :1], (b, S))
+        for t in range(1, nr):
+            o = jnp.where(s >= first[:, t:t + 1], off[:, t:t + 1], o)
+        ok = s < total[:, None]
+        pos = jnp.where(ok, o + s, 0)
+        dx, dy, dz = (c[pos] - q[:, i:i + 1] for i, c in enumerate(xyz))
+        d2 = (dx * dx + dy * dy) + dz * dz
         keep = ok if r2 is None else ok & (d2 <= r2)
         d2 = jnp.where(keep, d2, inf)
-        sel = _select if r2 is None else _select_finite
-        bd, bi = sel(jnp.concatenate([bd, d2], 1), jnp.concatenate([bi, pos], 1), kk)
-        return j + 1, bd, bi, cnt + jnp.sum(keep, axis=1, dtype=jnp.int32)
+        dd, pp = jnp.concatenate([bd, d2], 1), jnp.concatenate([bi, pos], 1)
+        if r2 is None:
+            bd, bi, okb = _select_flag(dd, pp, kk)
+            fine = fine if okb is None else fine & okb
+        else:
+            bd, bi = _select_finite(dd, pp, kk)
+        return j + 1, bd, bi, cnt + jnp.sum(keep, axis=1, dtype=jnp.int32), fine
 
-    init = (jnp.int32(0), jnp.full((b, kk), inf), jnp.zeros((b, kk), jnp.int32), jnp.zeros(b, jnp.int32))
-    _, bd, bi, cnt = lax.while_loop(lambda st: st[0] < n_steps, body, init)
-    return bd, bi, cnt
+    init = (jnp.int32(0), jnp.full((b, kk), inf), jnp.zeros((b, kk), jnp.int32), jnp.zeros(b, jnp.int32),
+            jnp.ones(b, bool))
+    _, bd, bi, cnt, ok = lax.while_loop(lambda st: st[0] < n_steps, body, init)
+    return bd, bi, cnt, ok
 
 
 def _slots(k: int) -> int:
@@ -470,8 +558,9 @@ def _knn_cell_size(ref, valid, k):
     s = min(16, n)
     kk = min(k, 8, n)
     pick = jnp.asarray(np.linspace(0, n - 1, s).round().astype(np.int32))
-    d2, _, _ = _brute_queries(_brute_refs(ref, valid), ref[pick], kk)
-    dk = jnp.sqrt(d2[:, -1]) * math.sqrt(k / kk)
+    r32 = ref.astype(jnp.float32)  # an estimate: float32 is enough (float64 scans measured 60x slower)
+    d2, _, _ = _brute_queries(_brute_refs(r32, valid), r32[pick], kk)
+    dk = jnp.sqrt(d2[:, -1]).astype(ref.dtype) * math.sqrt(k / kk)
     ok = valid[pick] & jnp.isfinite(dk) & (dk > 0)
     med = jnp.nanmedian(jnp.where(ok, dk, jnp.nan))
     return jnp.where(jnp.isfinite(med), 1.5 * med, 0.0)
@@ -484,8 +573,11 @@ _B1 = 1024  # queries per batch in the first grid pass
 
 
 def _fixed_slots(k: int) -> int:
-    """Candidates of the loop-free first pass: about 4x the mean 27-cell count of a cell sized for k."""
-    return int(16 * math.ceil((12 * k + 56) / 16))
+    """Candidates of the loop-free first pass: about the 99th percentile of the 27-cell count of a
+    cell sized for k on a surface (1.6-1.8x its mean; the rest take a second pass with 4x the slots).
+    Measured on the bunny (10k / 100k points): k = 16 mean 85 / 100, 99th percentile 157 / 137;
+    k = 32 mean 177 / 202, 99th percentile 313 / 300."""
+    return int(16 * math.ceil((9 * k + 32) / 16))
 _B2 = 32  # queries per batch in the fallback passes
 
 
@@ -505,37 +597,51 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None):
 
     def ring_pass(grid, q, ring, S):
         start, length, bound = grid.runs(q, ring)
-        d2, pos, _ = _scan_cells(grid.spts, q, start, length, k, S)
+        d2, pos, _, ok = _scan_cells(grid.spts, q, start, length, k, S)
         b = jnp.maximum(bound, 0.0)
         # certificate: the k-th distance is strictly inside the searched block
-        cert = d2[:, -1] < (b * b) * (1 - 64 * eps)
+        cert = ok & (d2[:, -1] < (b * b) * (1 - 64 * eps))
         return d2, jnp.where(jnp.isfinite(d2), grid.order[pos], -1), cert
 
     def done(d2, cert):  # answered: certified, or (approximate mode) k points found in the block
         return cert if approx is None else cert | (approx & jnp.isfinite(d2[:, -1]))
 
     if _FIXED_FIRST:  # one fixed gather of C candidates per query (no loop); more than C: not certified
-        def fixed_pass(q):
-            C = _fixed_slots(k)
+        xyz = (g.spts[:, 0], g.spts[:, 1], g.spts[:, 2])  # coordinates apart: three flat gathers
+
+        def fixed_pass(q, C):
             start, length, bound = g.runs(q, 1)
             cum = jnp.cumsum(length, axis=1)
             first = cum - length
-            s = jnp.arange(C, dtype=jnp.int32)
-            r = jnp.minimum(jnp.sum(s[None, :, None] >= cum[:, None, :], axis=-1, dtype=jnp.int32), cum.shape[1] - 1)
-            ok = s[None, :] < cum[:, -1:]
-            pos = jnp.where(ok, jnp.take_along_axis(start - first, r, 1) + s[None, :], 0)
-            d2 = jnp.where(ok, _sqdist(q[:, None, :], g.spts[pos]), jnp.inf)
-            d2, pos = _select(d2, pos, k)
+            s = jnp.arange(C, dtype=jnp.int32)[None, :]
+            # slot s lies in the last run whose first slot is <= s (a chain of selects, no gather)
+            off = start - first
+            o = jnp.broadcast_to(off[:, :1], (q.shape[0], C))
+            for j in range(1, cum.shape[1]):
+                o = jnp.where(s >= first[:, j:j + 1], off[:, j:j + 1], o)
+            ok = s < cum[:, -1:]
+            pos = jnp.where(ok, o + s, 0)
+            dx, dy, dz = (c[pos] - q[:, i:i + 1] for i, c in enumerate(xyz))
+            d2 = jnp.where(ok, (dx * dx + dy * dy) + dz * dz, jnp.inf)
+            d2, pos, sel_ok = _select_flag(d2, pos, k)
             full = cum[:, -1:] <= C  # else the C candidates are a part of the block: discarded, not answered
             d2 = jnp.where(full, d2, jnp.inf)
             b = jnp.maximum(bound, 0.0)
             cert = d2[:, -1] < (b * b) * (1 - 64 * eps)
+            if sel_ok is not None:
+                cert = cert & sel_ok
             return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cert
-        d2, idx, cert = _batched(fixed_pass, (qry,), min(_B1, qry.shape[0]))
+
+        C1 = _fixed_slots(k)
+        d2, idx, cert = _batched(lambda q: fixed_pass(q, C1), (qry,), min(_B1, qry.shape[0]))
+        # the few queries whose block holds more than C1 points: the same pass with 4 C1 slots
+        d2, idx, cert = _redo(~done(d2, cert), _B1 // 8, lambda sel: fixed_pass(qry[sel], 4 * C1), (d2, idx, cert))
     else:
         d2, idx, cert = _in_cell_order(g, qry, lambda q: ring_pass(g, q, 1, S), min(_B1, qry.shape[0]))
     # not answered: the 5 x 5 x 5 block of the same grid
-    d2, idx, cert = _redo(~done(d2, cert), _B1 // 2, lambda sel: ring_pass(g, qry[sel], 2, 2 * S), (d2, idx, cert))
+    # (smaller batches in float64, whose loop passes measured ~10x slower than float32's in XLA:CPU)
+    b2 = _B1 // 2 if qry.dtype == jnp.float32 else _B1 // 8
+    d2, idx, cert = _redo(~done(d2, cert), b2, lambda sel: ring_pass(g, qry[sel], 2, 2 * S), (d2, idx, cert))
     if approx is not None and g.reps is not None:
         def rep_pass(sel):
             d2r, idr, _ = ring_pass(g.reps, qry[sel], 1, 32)
@@ -565,7 +671,7 @@ def _query_grid_radius(g: GridIndex, qry, r, capacity):
 
     def one_pass(q):
         start, length, _ = g.runs(q, 1)
-        d2, pos, cnt = _scan_cells(g.spts, q, start, length, capacity, S, r * r)
+        d2, pos, cnt, _ = _scan_cells(g.spts, q, start, length, capacity, S, r * r)
         return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cnt
 
     d2, idx, cnt = _in_cell_order(g, qry, one_pass, min(_B1, qry.shape[0]))
