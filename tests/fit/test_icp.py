@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import fsjax
+from fsjax.data import surface_points
 from fsjax.fit import (
     icp,
     icp_multistart,
@@ -14,7 +15,6 @@ from fsjax.fit import (
     rotation_from_axis_angle,
     rotation_grid,
 )
-from fsjax.data import surface_points
 from fsjax.ops import knn
 from fsjax.tour.registration import measure_basin, measure_self_registration
 
@@ -177,3 +177,31 @@ def test_float32_metres_and_millimetres(method):
     # the unit does not change the answer beyond float32 rounding (the old point-to-point took 28
     # iterations in metres and 20 in millimetres on this scene)
     assert abs(errs["m"] - errs["mm"]) < 1e-2 and abs(its["m"] - its["mm"]) <= 1
+
+
+@pytest.mark.slow
+def test_grid_path_small_clouds(monkeypatch):
+    """The grid path of ICP (index + approximate then exact phases) on clouds small enough for the
+    brute-force path, forced by lowering the threshold: the same pose as the brute-force path."""
+    import importlib
+
+    icp_mod = importlib.import_module("fsjax.fit.icp")  # (fsjax.fit.icp the attribute is the function)
+    x = surface_points("bunny", 900, 0)
+    y = surface_points("bunny", 900, 1)
+    r = np.asarray(rotation_from_axis_angle(jnp.array([0.3, 1.0, -0.4]), 10.0))
+    src = jnp.asarray(y @ r)  # the source is the target's sample turned by -10 deg
+    out = {}
+    # the path is chosen at trace time: a different static max_iterations makes a new trace (both
+    # runs converge long before either cap)
+    for name, limit, cap in (("brute", icp_mod._BRUTE_LIMIT, 50), ("grid", 0, 49)):
+        monkeypatch.setattr(icp_mod, "_BRUTE_LIMIT", limit)
+        out[name] = icp(src, jnp.asarray(x), method="point_to_plane", max_iterations=cap)
+    eb = float(rotation_error_deg(out["brute"].R, jnp.asarray(r)))
+    eg = float(rotation_error_deg(out["grid"].R, jnp.asarray(r)))
+    print(f"ICP p2plane 900 pts, 10 deg: brute path {eb:.4f} deg ({int(out['brute'].iterations)} it), "
+          f"grid path {eg:.4f} deg ({int(out['grid'].iterations)} it)")
+    assert bool(out["brute"].converged) and bool(out["grid"].converged)
+    # the final turns of both run on exact correspondences: the same fixed point
+    assert float(rotation_error_deg(out["grid"].R, out["brute"].R)) < 1e-6
+    assert abs(float(out["grid"].rms_len) - float(out["brute"].rms_len)) < 1e-9
+    assert eg < 1.0 < 10.0  # registered (the null, no ICP, is 10 deg off)
