@@ -569,6 +569,7 @@ def _knn_cell_size(ref, valid, k):
 _CHAIN = ("c4r1", "c4r2", "c16r1")  # the coarse passes of the exact fallback chain (a probe knob)
 _SORT_QUERIES = False  # sort queries by cell first (coherent gathers); measured slower at 20k points
 _FIXED_FIRST = True
+_FLAT_GATHER = True  # three flat coordinate gathers in the first pass (a probe knob)
 _B1 = 1024  # queries per batch in the first grid pass
 
 
@@ -621,8 +622,11 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None):
                 o = jnp.where(s >= first[:, j:j + 1], off[:, j:j + 1], o)
             ok = s < cum[:, -1:]
             pos = jnp.where(ok, o + s, 0)
-            dx, dy, dz = (c[pos] - q[:, i:i + 1] for i, c in enumerate(xyz))
-            d2 = jnp.where(ok, (dx * dx + dy * dy) + dz * dz, jnp.inf)
+            if _FLAT_GATHER:
+                dx, dy, dz = (c[pos] - q[:, i:i + 1] for i, c in enumerate(xyz))
+                d2 = jnp.where(ok, (dx * dx + dy * dy) + dz * dz, jnp.inf)
+            else:
+                d2 = jnp.where(ok, _sqdist(q[:, None, :], g.spts[pos]), jnp.inf)
             d2, pos, sel_ok = _select_flag(d2, pos, k)
             full = cum[:, -1:] <= C  # else the C candidates are a part of the block: discarded, not answered
             d2 = jnp.where(full, d2, jnp.inf)
@@ -630,12 +634,13 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None):
             cert = d2[:, -1] < (b * b) * (1 - 64 * eps)
             if sel_ok is not None:
                 cert = cert & sel_ok
-            return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cert
+            return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cert, ~full[:, 0]
 
         C1 = _fixed_slots(k)
-        d2, idx, cert = _batched(lambda q: fixed_pass(q, C1), (qry,), min(_B1, qry.shape[0]))
+        d2, idx, cert, over = _batched(lambda q: fixed_pass(q, C1), (qry,), min(_B1, qry.shape[0]))
         # the few queries whose block holds more than C1 points: the same pass with 4 C1 slots
-        d2, idx, cert = _redo(~done(d2, cert), _B1 // 8, lambda sel: fixed_pass(qry[sel], 4 * C1), (d2, idx, cert))
+        d2, idx, cert = _redo(~done(d2, cert) & over, _B1 // 8, lambda sel: fixed_pass(qry[sel], 4 * C1)[:3],
+                              (d2, idx, cert))
     else:
         d2, idx, cert = _in_cell_order(g, qry, lambda q: ring_pass(g, q, 1, S), min(_B1, qry.shape[0]))
     # not answered: the 5 x 5 x 5 block of the same grid
