@@ -30,7 +30,11 @@ variance parameter adds the same 1 to each and is left out). The choice is
 the minimum of the criterion (BIC by default: it is consistent, so a model is
 not more complex than the data supports as ``n`` grows; AIC over-selects a
 nested larger model with probability about ``P(chi2_1 > 2) = 16 %``). The
-quadric patch's residual is its first-order orthogonal distance.
+quadric patch's residual is its first-order orthogonal distance. The criteria only
+rank the candidates; a candidate is chosen only if its residuals are consistent with the
+noise (``noise`` given, a chi-square bound) or small beside the points' spread
+(``max_rel_rms``), so points that no candidate explains (a random blob, a torus) give
+``valid`` False and ``choice`` -1 rather than the least bad model.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from .._checks import check_positive
 from .._linalg import SmallQR, eigh_small, levenberg_marquardt, solve_small, solve_spd_eig
 from ..types import NamedParams
 from ..types.results import FitResult, deprecated_name, reason_code, renamed
@@ -482,13 +487,17 @@ def fit_quadric(xyz, valid=None) -> Fit3D:
 class ModelSelection(eqx.Module):
     """Evidence of :func:`select_model`: one entry per candidate in ``names`` order.
 
-    Not a fit result (no ``converged``/``reason``): it compares the :class:`Fit3D` results of
-    the candidates; each candidate's failure shows as ``inf`` criteria, and ``choice == -1``
-    says none succeeded.
+    Not a fit result (no ``converged``): it compares the :class:`Fit3D` results of the
+    candidates; each candidate's failure shows as ``inf`` criteria. ``valid`` False and
+    ``choice == -1`` say that no candidate fits: ``reason`` is ``degenerate`` when no fit
+    succeeded, ``no_model_fits`` when fits succeeded but none explains the points (its
+    residuals are far above the noise, see :func:`select_model`).
 
     ``rss`` residual sum of squares, ``rms_len`` (input length unit; was ``rms``), ``k`` free parameters, ``aic``,
-    ``bic`` (``inf`` for a fit that failed), ``choice`` index of the chosen model
-    under ``criterion`` (``-1`` when no fit succeeded), ``n`` points used.
+    ``bic`` (``inf`` for a fit that failed), ``supported`` per candidate: its residuals are
+    consistent with the noise, ``choice`` index of the chosen model under ``criterion`` among the
+    supported ones (``-1`` when none), ``nearest`` the criterion's minimum among the fits that
+    succeeded whether supported or not (diagnostic only), ``n`` points used.
     """
 
     rss: Float[Array, "*batch M"]
@@ -498,23 +507,38 @@ class ModelSelection(eqx.Module):
     bic: Float[Array, "*batch M"]
     choice: Int[Array, "*batch"]
     n: Int[Array, "*batch"]
+    supported: Bool[Array, "*batch M"]
+    nearest: Int[Array, "*batch"]
+    valid: Bool[Array, "*batch"]
+    reason: Int[Array, "*batch"]
     names: tuple[str, ...] = eqx.field(static=True, default=())
     criterion: str = eqx.field(static=True, default="bic")
 
     rms = renamed("rms_len")
 
     def chosen(self) -> str:
-        """Name of the chosen model (eager, single result); ``"none"`` when every fit failed."""
+        """Name of the chosen model (eager, single result); ``"none"`` when no model fits."""
         c = int(self.choice)
         return self.names[c] if c >= 0 else "none"
 
 
 @functools.partial(jax.jit, static_argnames=("criterion",))
-def select_model(xyz, valid=None, *, criterion: str = "bic") -> ModelSelection:
+def select_model(xyz, valid=None, *, criterion: str = "bic", noise=None, max_rel_rms=0.1) -> ModelSelection:
     """Choose among plane, sphere, cylinder and quadric by AIC or BIC (see the module docstring).
 
+    A model is chosen only if it explains the points (fails closed, issue 20): with ``noise``
+    (the standard deviation of the points' distance to the true surface, input length unit)
+    a candidate is *supported* when its residual sum of squares is within the chi-square
+    bound ``noise^2 (d + 4 sqrt(2 d))``, ``d = n - k`` (about 4 standard deviations of the
+    chi-square); without it, when its rms distance is at most ``max_rel_rms`` times the
+    points' rms distance from their centroid (the default 0.1: a random blob, a cube or a
+    torus leave 0.16-0.55 with every candidate; the patches of the tests, 0.01 noise, 0.02).
+    The criterion picks among the supported candidates; when none is supported ``valid`` is
+    False, ``choice`` -1 and ``reason`` says why (``no_model_fits``). ``max_rel_rms=None``
+    without ``noise`` restores the plain comparison (always names the criterion's best).
+
     Example:
-      Noisy points on a sphere cap select the sphere:
+      Noisy points on a sphere cap select the sphere; a random blob selects none:
 
       >>> import jax.numpy as jnp, numpy as np
       >>> from fsjax.fit import select_model
@@ -523,9 +547,15 @@ def select_model(xyz, valid=None, *, criterion: str = "bic") -> ModelSelection:
       >>> pts = u[u[:, 2] > 0.3][:150] + 0.01 * rng.normal(size=(150, 3))
       >>> select_model(jnp.asarray(pts)).chosen()
       'sphere'
+      >>> select_model(jnp.asarray(rng.normal(size=(150, 3)))).chosen()
+      'none'
     """
     if criterion not in ("aic", "bic"):
         raise ValueError(f"select_model: argument 'criterion' must be 'aic' or 'bic'; got {criterion!r}")
+    if noise is not None:
+        check_positive("select_model", "noise", noise)
+    if max_rel_rms is not None:
+        check_positive("select_model", "max_rel_rms", max_rel_rms)
     fits = (fit_plane(xyz, valid), fit_sphere(xyz, valid), fit_cylinder(xyz, valid), fit_quadric(xyz, valid))
     names = ("plane", "sphere", "cylinder", "quadric")
     rss = jnp.stack([f.rss for f in fits])
@@ -538,8 +568,26 @@ def select_model(xyz, valid=None, *, criterion: str = "bic") -> ModelSelection:
     aic = jnp.where(ok, ll + 2 * k, jnp.inf)
     bic = jnp.where(ok, ll + k * jnp.log(jnp.maximum(nf, 1.0)), jnp.inf)
     crit = aic if criterion == "aic" else bic
-    choice = jnp.where(jnp.any(ok), jnp.argmin(crit), -1).astype(jnp.int32)
-    return ModelSelection(rss=rss, rms_len=rms, k=k, aic=aic, bic=bic, choice=choice, n=n, names=names,
+    if noise is not None:
+        dof = jnp.maximum(nf - k.astype(rss.dtype), 1.0)
+        sig = jnp.asarray(noise, rss.dtype)
+        supported = ok & (rss <= sig * sig * (dof + 4.0 * jnp.sqrt(2.0 * dof)))
+    elif max_rel_rms is not None:
+        x = jnp.asarray(xyz)
+        w = jnp.ones(x.shape[:-1], bool) if valid is None else jnp.asarray(valid, bool)
+        w = w & jnp.all(jnp.isfinite(x), axis=-1)
+        wf = w.astype(rss.dtype)
+        c = jnp.sum(jnp.where(w[:, None], x, 0.0), axis=0) / jnp.maximum(jnp.sum(wf), 1.0)
+        spread = jnp.sqrt(jnp.sum(jnp.where(w[:, None], (x - c) ** 2, 0.0)) / jnp.maximum(jnp.sum(wf), 1.0))
+        supported = ok & (rms <= jnp.asarray(max_rel_rms, rss.dtype) * spread)
+    else:
+        supported = ok
+    nearest = jnp.where(jnp.any(ok), jnp.argmin(crit), -1).astype(jnp.int32)
+    choice = jnp.where(jnp.any(supported), jnp.argmin(jnp.where(supported, crit, jnp.inf)), -1).astype(jnp.int32)
+    reason = jnp.where(jnp.any(supported), reason_code("ok"),
+                       jnp.where(jnp.any(ok), reason_code("no_model_fits"), reason_code("degenerate")))
+    return ModelSelection(rss=rss, rms_len=rms, k=k, aic=aic, bic=bic, choice=choice, n=n, supported=supported,
+                          nearest=nearest, valid=choice >= 0, reason=reason.astype(jnp.int32), names=names,
                           criterion=criterion)
 
 

@@ -59,6 +59,8 @@ class RESULTS(eqx.Enumeration):
     not_found = "the pattern was not found (no response, too few candidates or no complete grid)"
     pattern_mismatch = "the pattern does not match the board (more or fewer inner corners)"
     refinement_failed = "sub-pixel refinement failed or merged neighbouring corners"
+    no_model_fits = ("no candidate model explains the points: every fit's residuals are far above the "
+                     "noise (or, with no noise given, above max_rel_rms of the points' spread)")
 
 
 def reason_code(name: str) -> int:
