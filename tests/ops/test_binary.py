@@ -350,3 +350,22 @@ def test_bad_parameters_fill_boundary():
         boundary(reg, connectivity=2)
     with pytest.raises(ValueError, match="boundary.*'border'"):
         boundary(reg, border="outside")
+
+
+def test_huge_radius_costs_no_more_than_the_image_and_is_exact():
+    """Issue 20 sweep (cost growing with one argument; tools/sweep_traced_params.py): a concrete
+    radius built a (2R + 1)-segment element whatever the image (radius=1e4 on 24 x 32 ran
+    > 40 s). An element wider than the image's diagonal covers every pixel from every pixel
+    under the constant border, so it is cut there: the traced program for radius 300 is the
+    one for the diagonal (before: 2,405 equations vs 85), and the masks are equal."""
+    m = jnp.zeros((6, 8), bool).at[2, 3].set(True).at[5, 0].set(True)
+    reg = fsjax.Region(m)
+    diag = 10  # ceil(hypot(6, 8))
+    for op, shape in ((region_dilate, "disk"), (region_erode, "square")):
+        n_big = len(jax.make_jaxpr(lambda d, op=op, shape=shape: op(fsjax.Region(d), radius=300, shape=shape).data)(m).eqns)
+        n_cut = len(jax.make_jaxpr(lambda d, op=op, shape=shape: op(fsjax.Region(d), radius=diag, shape=shape).data)(m).eqns)
+        assert n_big == n_cut
+    big = region_dilate(reg, radius=300)
+    assert bool(jnp.all(big.data))  # every pixel is within the diagonal of a set pixel
+    assert bool(jnp.array_equal(region_dilate(reg, radius=300, border="background").data, big.data))
+    assert not bool(jnp.any(region_erode(reg, radius=300, border="background").data))

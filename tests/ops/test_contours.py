@@ -300,3 +300,15 @@ def test_numbers_from_truncated_inputs_are_nan():
     assert math.isnan(float(p(_img(x)).value))
     lab = fsjax.ops.label(fsjax.Region(jnp.asarray(x > 0.5)), capacity=1)
     assert bool(lab.truncated) and math.isnan(float(fsjax.ops.mean_area(lab).value))
+
+
+def test_traced_nan_max_gap_fails_closed():
+    """Issue 20 sweep, second pass (tools/sweep_traced_params.py): a traced ``max_gap`` of NaN
+    compared false against every gap and gave the plain length / area / circularity, though
+    the eager call refuses it; now NaN. In range the traced call equals the eager one."""
+    x = np.zeros((12, 20))
+    x[2:5, 2:5] = 1.0
+    c = fsjax.ops.iso_contour(_img(x), level=0.5, capacity=64)
+    f = jax.jit(lambda g: fsjax.ops.contour_length(c, max_gap=g).value)
+    assert math.isnan(float(f(jnp.nan)))
+    assert float(f(3.0)) == pytest.approx(float(fsjax.ops.contour_length(c, max_gap=3.0).value))

@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..._checks import check_choice, check_positive, check_range, check_static_int
+from ..._checks import check_choice, check_positive, check_range, check_static_int, note_traced
 from ...registry import LinKnob, LogKnob, poison, register
 from ...types import Contour, Feature, Image, is_concrete
 from .._common import check_mode, correlate1d, support_exceeded
@@ -446,6 +446,8 @@ def _check_gap(op: str, max_gap) -> None:
         g = float(np.asarray(max_gap))
         if not g > 0:
             raise ValueError(f"{op}: argument 'max_gap' must be > 0 (inf allowed), got {max_gap}")
+    else:  # a traced NaN compared false everywhere and passed every gap (issue 20 sweep)
+        note_traced(max_gap, ~(jnp.asarray(max_gap) > 0))
 
 
 def _lengths(c: Contour, max_gap, closed: bool):
