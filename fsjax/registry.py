@@ -295,6 +295,37 @@ def truncation_poison(spec: OpSpec, args: tuple, out: Any) -> Any:
     return poison(out, bad, who=spec.name)
 
 
+_GROWTH = 4  # capacity factor per re-run
+
+
+def _capacity_limit(args: tuple) -> int:
+    """The most any capacity can usefully be for these inputs: 4 x the elements of the largest
+    array among them (points of a contour <= 4 per pixel edge crossing, labels and instances
+    <= pixels, clusters <= points)."""
+    import jax
+
+    n = max((int(np.size(v)) for v in jax.tree_util.tree_leaves(args) if hasattr(v, "shape")), default=0)
+    return 4 * max(n, 1)
+
+
+def _grow_when_eager(spec: OpSpec, args: tuple, kwargs: dict, out: Any) -> Any:
+    """An eager call that left ``capacity`` at its default and overflowed it is re-run with a
+    larger capacity until nothing is lost (issue 20 item 4: a default must give a correct
+    result on the library's own data, or size itself from the input when eager). A capacity
+    the caller passed is kept (the result says ``truncated``), and under ``jit``/``vmap`` the
+    buffer is static: ``truncated`` is reported and numbers reduced from it are NaN."""
+    if "capacity" not in spec.params or "capacity" in kwargs or not isinstance(spec.params["capacity"], int):
+        return out
+    t = getattr(out, "truncated", None)
+    if t is None or not is_concrete(t) or not bool(np.any(np.asarray(t))) or _any_tracer((args, kwargs)):
+        return out
+    cap, limit = int(spec.params["capacity"]), _capacity_limit(args)
+    while cap < limit and bool(np.any(np.asarray(out.truncated))):
+        cap = min(cap * _GROWTH, limit)
+        out = _call(spec.name, spec.raw, args, {**kwargs, "capacity": cap})
+    return out
+
+
 def _fmt(u) -> str:
     try:
         return f"{float(u):g}"
@@ -410,6 +441,7 @@ def register(
                 out = _call(opname, fn, args, kwargs)
             if bad:
                 out = poison(out, functools.reduce(jnp.logical_or, bad), who=opname)
+            out = _grow_when_eager(spec, args, kwargs, out)
             return truncation_poison(spec, args, out)
 
         spec = OpSpec(
