@@ -296,6 +296,8 @@ def truncation_poison(spec: OpSpec, args: tuple, out: Any) -> Any:
 
 
 _GROWTH = 4  # capacity factor per re-run
+# result capacities an eager call may size from the input, with the op's own static upper bound
+_GROWABLE = {"capacity": None, "max_neighbors": 256}
 
 
 def _capacity_limit(args: tuple) -> int:
@@ -309,20 +311,25 @@ def _capacity_limit(args: tuple) -> int:
 
 
 def _grow_when_eager(spec: OpSpec, args: tuple, kwargs: dict, out: Any) -> Any:
-    """An eager call that left ``capacity`` at its default and overflowed it is re-run with a
-    larger capacity until nothing is lost (issue 20 item 4: a default must give a correct
+    """An eager call that left ``capacity`` (and ``max_neighbors``) at its default and overflowed
+    it is re-run with a larger capacity until nothing is lost (issue 20 item 4: a default must give a correct
     result on the library's own data, or size itself from the input when eager). A capacity
     the caller passed is kept (the result says ``truncated``), and under ``jit``/``vmap`` the
     buffer is static: ``truncated`` is reported and numbers reduced from it are NaN."""
-    if "capacity" not in spec.params or "capacity" in kwargs or not isinstance(spec.params["capacity"], int):
+    grow = {k: int(spec.params[k]) for k in _GROWABLE
+            if k in spec.params and k not in kwargs and isinstance(spec.params[k], int)}
+    if not grow:
         return out
     t = getattr(out, "truncated", None)
     if t is None or not is_concrete(t) or not bool(np.any(np.asarray(t))) or _any_tracer((args, kwargs)):
         return out
-    cap, limit = int(spec.params["capacity"]), _capacity_limit(args)
-    while cap < limit and bool(np.any(np.asarray(out.truncated))):
-        cap = min(cap * _GROWTH, limit)
-        out = _call(spec.name, spec.raw, args, {**kwargs, "capacity": cap})
+    if any(bool(np.any(np.asarray(getattr(a, "truncated", False)))) for a in args):
+        return out  # the loss is the input's (its flag is passed on): a larger buffer cannot help
+    limit = _capacity_limit(args)
+    lim = {k: min(limit, _GROWABLE[k] or limit) for k in grow}
+    while bool(np.any(np.asarray(out.truncated))) and any(v < lim[k] for k, v in grow.items()):
+        grow = {k: max(v, min(v * _GROWTH, lim[k])) for k, v in grow.items()}
+        out = _call(spec.name, spec.raw, args, {**kwargs, **grow})
     return out
 
 

@@ -160,7 +160,8 @@ def test_default_capacity_grows_when_eager_and_is_flagged_under_jit():
     larger one until nothing is lost; a capacity the caller gives is kept and flagged, and
     under jit the static buffer's overflow is flagged (numbers reduced from it are NaN).
     Small stand-ins here: 1,600 one-pixel components (label's default 1,024), an 80 x 80
-    checker (iso_contour's 2,048 points), 16 copies of a template (ncc_locate's 8)."""
+    checker (iso_contour's 2,048 points), 16 copies of a template (ncc_locate's 8), two
+    clusters of 40 points (euclidean_cluster's 32 neighbours)."""
     dots = np.zeros((80, 80), bool)
     dots[::2, ::2] = True
     lab = fsjax.ops.label(fsjax.Region(jnp.asarray(dots)))
@@ -169,10 +170,19 @@ def test_default_capacity_grows_when_eager_and_is_flagged_under_jit():
     chk = fsjax.Image(jnp.asarray(np.kron((np.indices((20, 20)).sum(0) % 2), np.ones((4, 4))), jnp.float32))
     c = fsjax.ops.iso_contour(chk, level=0.5)
     assert not bool(c.truncated) and int(jnp.sum(c.valid)) > 2048
-    assert bool(jax.jit(lambda x: fsjax.ops.iso_contour(x, level=0.5).truncated)(chk))  # static: flagged
-    assert np.isnan(float(jax.jit(lambda x: fsjax.ops.contour_length(fsjax.ops.iso_contour(x, level=0.5)).value)(chk)))
+    def under_jit(x):  # static buffer: flagged, and a number reduced from it is NaN
+        ci = fsjax.ops.iso_contour(x, level=0.5)
+        return ci.truncated, fsjax.ops.contour_length(ci).value
+
+    tr, length = jax.jit(under_jit)(chk)
+    assert bool(tr) and np.isnan(float(length))
     spot = np.zeros((8, 8), np.float32)
     spot[2:6, 3:5] = 1.0
     scene = fsjax.Image(jnp.asarray(np.kron(np.ones((4, 4)), np.pad(spot, 4)), jnp.float32))
     m = fsjax.ops.ncc_locate(scene, fsjax.Image(jnp.asarray(np.pad(spot, 1))), min_score=0.9)
     assert not bool(m.truncated) and int(jnp.sum(m.valid)) == 16
+    # a neighbour-list capacity (euclidean_cluster's max_neighbors 32) grows the same way
+    rng = np.random.default_rng(0)
+    two = fsjax.Points(jnp.asarray(np.r_[rng.uniform(0, 0.1, (40, 3)), rng.uniform(5, 5.1, (40, 3))], jnp.float32))
+    cl = fsjax.ops.euclidean_cluster(two, radius=0.2, min_size=5)
+    assert not bool(cl.truncated) and int(cl.count) == 2
