@@ -640,9 +640,15 @@ def line_line_distance(l1, l2):
     cr = jnp.cross(d1, d2)
     cn = _nrm(cr)
     w = l2[:3] - l1[:3]
-    skew = jnp.abs(w @ cr) / jnp.where(cn > 1e-12, cn, 1.0)
+    # the skew formula's rounding error is ~eps |w| / sin(angle), the parallel one's departure
+    # from the minimum ~|w| sin(angle): switch where they meet (sin = 2 sqrt(eps)), so the
+    # error stays below ~2 sqrt(eps) |w| in any dtype. The fixed switch at 1e-12 sat below
+    # float32's rounding: float32 lines parallel to their precision gave 0.0 for 1.41 and 70.7 or
+    # 346 for 141 (issue 20 sweep).
+    skew_ok = cn > 2.0 * jnp.sqrt(jnp.finfo(cn.dtype).eps)
+    skew = jnp.abs(w @ cr) / jnp.where(skew_ok, cn, 1.0)
     par = _nrm(jnp.cross(w, d1))
-    return jnp.where(cn > 1e-12, skew, par)
+    return jnp.where(skew_ok, skew, par)
 
 
 def _acute(cosv):

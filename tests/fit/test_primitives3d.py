@@ -64,6 +64,17 @@ def test_distances_angles_intersections():
     assert float(line_line_distance(l1, l2)) == pytest.approx(2.0, abs=1e-15)
     # parallel lines fall back to point-line distance (no division by |d1 x d2| = 0)
     assert float(line_line_distance(l1, jnp.array([5.0, 3, 4, -2, 0, 0]))) == pytest.approx(5.0, abs=1e-14)
+    # issue 20 sweep (unit/dtype-dependent thresholds): lines along a diagonal whose float32
+    # directions differ by one ulp (parallel to the data's precision; |d1 x d2| ~ 1e-7, above the
+    # old switch 1e-12) got the skew formula, whose answer is set by rounding: 70.7 for 141.4 here
+    # (with XLA's default optimisation also 0.0 for 1.414); the switch now follows the dtype's eps
+    dg = (np.ones(3) / np.sqrt(3)).astype(np.float32)
+    dg2 = dg.copy()
+    dg2[0] = np.nextafter(dg2[0], np.float32(1))
+    for p1, p2 in (([0.3, 0.1, 0.7], [0.3, 1.1, -0.3]), ([0.0, 0.0, 0.0], [100.0, 200.0, 300.0])):
+        true = float(np.linalg.norm(np.cross(np.subtract(p2, p1), dg)))
+        got = float(line_line_distance(jnp.asarray(np.r_[p1, dg], jnp.float32), jnp.asarray(np.r_[p2, dg2], jnp.float32)))
+        assert got == pytest.approx(true, rel=1e-5), (got, true)
     th = 37.0
     d = jnp.array([np.cos(np.radians(th)), np.sin(np.radians(th)), 0.0])
     assert float(angle_lines(l1, jnp.concatenate([jnp.zeros(3), -d]))) == pytest.approx(th, abs=1e-9)
