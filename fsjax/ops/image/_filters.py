@@ -733,6 +733,8 @@ def percentile_filter(img: Image, /, *, percentile: float = 50.0, radius: int = 
     mr = _check_rank_common(op, footprint, mode, max_radius)
     check_range(op, "percentile", percentile, 0.0, 100.0)
     r = _int_param(op, "radius", radius, lo=0)
+    if r is not None:  # issue 20 sweep: radius=1e4 on 24 x 32 ran > 2 min (median/rank refused it)
+        check_kernel_extent(op, "radius", r, img.data.shape)  # (2r + 1)^2 samples per pixel
     wr = min(mr, _side(img)) if r is None else r
     return Image(_order_core(img.data, radius, percentile, wr=wr, footprint=footprint, mode=mode,
                              kind="percentile"))
