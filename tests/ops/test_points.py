@@ -186,3 +186,18 @@ def test_bad_parameters_raise():
         fsjax.ops.statistical_outlier_removal(pts, std_ratio=float("nan"))
     with pytest.raises(ValueError, match="NaN"):
         fsjax.ops.estimate_normals(fsjax.Points(jnp.array([[0.0, 0, jnp.nan]])))
+
+
+def test_normals_of_a_line_refused_in_float32():
+    """Issue 20 sweep (dtype-dependent thresholds): points on a line have no normal. The test
+    ``lambda_1 > 1e-12 lambda_2`` sat below float32's rounding: 54 of 64 float32 points on a
+    line 100-250 units from the origin got a (arbitrary) normal. The null: a 20 x 2 strip of a
+    plane at the same place, same dtype and neighbours, keeps its normals (error < 1 deg)."""
+    rng = np.random.default_rng(0)
+    d = np.array([0.3, 0.5, 0.81]) / np.linalg.norm([0.3, 0.5, 0.81])
+    line = np.array([100.0, 200.0, 50.0]) + rng.uniform(-10, 10, (64, 1)) * d
+    strip = np.array([100.0, 200.0, 50.0]) + np.c_[rng.uniform(-10, 10, 64), rng.uniform(-1, 1, 64), np.zeros(64)]
+    f = jax.jit(lambda x: fsjax.ops.estimate_normals(fsjax.Points(x), k=8).normals)
+    assert not bool(jnp.any(jnp.isfinite(f(jnp.asarray(line, jnp.float32)))))
+    ns = np.asarray(f(jnp.asarray(strip, jnp.float32)))
+    assert np.all(np.isfinite(ns)) and np.degrees(np.arccos(np.min(np.abs(ns[:, 2])))) < 1.0

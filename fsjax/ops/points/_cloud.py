@@ -184,7 +184,13 @@ def estimate_normals(pts: Points, /, *, k: int = 16, viewpoint: tuple[float, flo
     evals, evecs, _, cnt = pca_frames(xyz, valid, idx)
     n = evecs[..., 0]
     scale = jnp.maximum(evals[:, 2], 0.0)
-    ok = valid & (cnt >= 3) & (evals[:, 1] > 1e-12 * scale) & (scale > 0)
+    # a neighbourhood on a line has no normal; its middle eigenvalue is 0 up to the solver's
+    # error (~eps scale) and the coordinates' rounding (~(eps |x|)^2): the old floor 1e-12 scale
+    # sat below float32's, and 54 of 64 float32 points on a line got a normal (issue 20 sweep)
+    eps = jnp.finfo(xyz.dtype).eps
+    floor = jnp.maximum(max(1e-12, 32 * float(eps)) * scale,
+                        (32 * eps * jnp.max(jnp.abs(xyz), axis=-1)) ** 2)
+    ok = valid & (cnt >= 3) & (evals[:, 1] > floor) & (scale > 0)
     s = jnp.sum(n * (jnp.asarray(vp, xyz.dtype) - xyz), axis=-1)
     n = jnp.where((s < 0)[:, None], -n, n)
     n = jnp.where(ok[:, None], n + 0.0, jnp.nan)
