@@ -538,6 +538,7 @@ def test_cost_bounded_by_the_image_and_long_kernels_exact():
                       (lambda: fsjax.ops.median(img, radius=100), "median: argument 'radius'"),
                       # found by the second sweep (radius=1e4 on 24 x 32 ran > 2 min)
                       (lambda: fsjax.ops.percentile_filter(img, radius=100), "percentile_filter: argument 'radius'"),
+                      (lambda: fsjax.ops.opening_by_reconstruction(img, radius=100), "opening_by_reconstruction: argument 'radius'"),
                       (lambda: fsjax.ops.bilateral(img, sigma_spatial=50.0), "bilateral: argument 'sigma_spatial'"),
                       (lambda: fsjax.ops.erosion(img, radius=1e6), "erosion: argument 'radius'")]:
         with pytest.raises(ValueError, match=msg):
