@@ -415,3 +415,14 @@ def test_traced_radius_above_support_fails_closed():
         jax.block_until_ready(f(jnp.float32(2.5)))
     with pytest.raises(ValueError, match="local_mean.*'radius'.*bound"):
         fsjax.ops.local_mean(img, radius=10 ** 6)
+
+
+def test_traced_nan_band_limit_fails_closed():
+    """Issue 20 sweep, second pass (tools/sweep_traced_params.py): ``threshold`` refuses a NaN
+    ``lo``/``hi`` eagerly, but a traced NaN gave an empty Region (every comparison false); a
+    Region cannot carry NaN, so the call now raises at run time. In range it equals eager."""
+    img = fsjax.Image(jnp.arange(16.0).reshape(4, 4) / 15)
+    f = jax.jit(lambda lo: fsjax.ops.threshold(img, lo=lo, hi=10 / 15).data)
+    assert int(f(5 / 15).sum()) == 6
+    with pytest.raises(Exception, match="out of range"):
+        jax.block_until_ready(f(jnp.nan))

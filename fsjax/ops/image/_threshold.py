@@ -42,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from ..._checks import check_positive, check_static_int
+from ..._checks import check_positive, check_static_int, note_traced
 from ...registry import LinKnob, register
 from ...types import Feature, Image, Labels, Region, is_concrete
 
@@ -254,6 +254,8 @@ def threshold(img: Image, /, *, lo: float = 0.5, hi: float = math.inf) -> Region
     for name, v in (("lo", lo), ("hi", hi)):
         if is_concrete(v) and np.any(np.isnan(np.asarray(v, dtype=float))):
             raise ValueError(f"threshold: argument {name!r} must not be NaN, got {v}")
+        if not is_concrete(v):  # a traced NaN gave an empty Region (issue 20 sweep); now it raises
+            note_traced(v, jnp.isnan(v))
     x = img.data
     return Region((x >= jnp.asarray(lo, x.dtype)) & (x <= jnp.asarray(hi, x.dtype)))
 
