@@ -1,0 +1,331 @@
+"""Quadric-error mesh decimation (``Mesh -> Mesh``), by rounds of independent edge collapses.
+
+Conventions:
+
+* **Error metric** (Garland and Heckbert 1997): every vertex carries a quadric, the sum of
+  the squared-distance quadrics ``K = p p^T`` of the planes ``p = (n, -n.x)`` of its faces,
+  weighted by face area. An edge ``(a, b)`` collapses to the point ``v`` minimising
+  ``v^T (Q_a + Q_b) v``: the solution of the 3x3 system where it is well conditioned and close
+  to the edge, else the best of ``a``, ``b`` and the midpoint. The merged vertex keeps
+  ``Q_a + Q_b``, so the error stays measured against the *original* planes: flat regions
+  go first, creases and corners (several planes) last.
+* **Boundaries** are kept by a constraint plane per boundary edge, through the edge and
+  perpendicular to its face, weighted ``boundary_weight`` times the edge length squared;
+  an interior edge joining two boundary vertices is never collapsed (it would pinch).
+* **Parallel rounds** instead of a priority queue: each round takes the cheapest eighth of
+  the edges (costs bucketed by factors of sqrt(2)) as eligible and, as in Luby's independent
+  sets, collapses an eligible edge when its random priority (a hash of its vertices) is the
+  smallest among the eligible edges within one edge of either endpoint. Selected edges are
+  therefore at least two edges apart: their neighbourhoods do not touch and they collapse
+  at once, correctly (Papageorgiou and Platis 2015 use an independence rule of this kind
+  on the GPU). A round refuses a collapse that breaks the link condition (the endpoints
+  share other neighbours than the edge's own triangles: it would create a non-manifold
+  edge or a fin), that turns a remaining face by more than ~84 degrees for every candidate
+  position (a fold-over), or whose cheapest non-folding position costs more than twice the
+  cost it was ranked by. A refused edge waits until a collapse next to it changes its
+  surroundings.
+* The number of collapses of the last round is cut so that the face count lands on the
+  target or one below it (an interior collapse removes two faces, a boundary one one). When no legal collapse
+  remains before the target (a tetrahedron cannot be decimated), the result has more faces
+  than asked: the output's valid-face count says so; nothing is forced.
+* Shapes are fixed: the output has the input's vertex and face arrays; removed faces have
+  ``face_valid = False`` and removed vertices ``vertex_valid = False``.
+* Memory ``O(F)``; each round sorts the ``3 F`` half-edges twice.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from ..._checks import check_range, check_static_int
+from ...registry import register
+from ...types import Mesh
+from ._mesh import _check_mesh
+
+__all__ = ["decimate"]
+
+_REFS = [
+    "M. Garland, P. S. Heckbert, Surface simplification using quadric error metrics, SIGGRAPH 1997",
+    "T. K. Dey, H. Edelsbrunner, S. Guha, D. V. Nekhayev, Topology preserving edge contraction, "
+    "Publ. Inst. Math. (Beograd) 66(80), 1999 (the link condition)",
+    "G. Papageorgiou, N. Platis, Triangular mesh simplification on the GPU, The Visual Computer 31, 2015",
+    "M. Luby, A simple parallel algorithm for the maximal independent set problem, SIAM J. Comput. 15(4), 1986",
+]
+_INT_MAX = jnp.iinfo(jnp.int32).max
+
+
+def _plane_quadric(n, d):
+    """Packed symmetric 4x4 quadric ``p p^T`` of planes ``p = (n, d)``; ``(..., 10)``."""
+    p = jnp.concatenate([n, d[..., None]], axis=-1)
+    i, j = jnp.triu_indices(4)
+    return p[..., i] * p[..., j]
+
+
+def _unpack(q):
+    i, j = jnp.triu_indices(4)
+    m = jnp.zeros(q.shape[:-1] + (4, 4), q.dtype).at[..., i, j].set(q)
+    return m + jnp.swapaxes(m, -1, -2) - m * jnp.eye(4, dtype=q.dtype)
+
+
+def _cost(m, v):
+    h = jnp.concatenate([v, jnp.ones(v.shape[:-1] + (1,), v.dtype)], axis=-1)
+    return jnp.maximum(jnp.einsum("...i,...ij,...j->...", h, m, h), 0.0)
+
+
+def _solve3(a, b):
+    """Solve ``a x = b`` for 3x3 ``a`` by Cramer's rule; returns ``(x, det)``."""
+    c0, c1, c2 = a[..., :, 0], a[..., :, 1], a[..., :, 2]
+    det = jnp.sum(c0 * jnp.cross(c1, c2), -1)
+    safe = jnp.where(det == 0, 1.0, det)
+    x = jnp.stack([jnp.sum(b * jnp.cross(c1, c2), -1), jnp.sum(c0 * jnp.cross(b, c2), -1),
+                   jnp.sum(c0 * jnp.cross(c1, b), -1)], -1) / safe[..., None]
+    return x, det
+
+
+def _edges(faces, fvalid):
+    """Undirected edges of the valid faces: ``(lo, hi, face, count, is_edge)`` per slot ``(3F,)``.
+
+    ``face`` is one face holding the edge (the first in sort order); ``count`` the number of
+    valid faces on it (1: boundary).
+    """
+    nf = faces.shape[0]
+    a = faces.reshape(-1)
+    b = jnp.roll(faces, -1, axis=1).reshape(-1)
+    ok = jnp.repeat(fvalid, 3)
+    lo = jnp.where(ok, jnp.minimum(a, b), _INT_MAX)
+    hi = jnp.where(ok, jnp.maximum(a, b), _INT_MAX)
+    fid = jnp.repeat(jnp.arange(nf, dtype=jnp.int32), 3)
+    lo, hi, fid = lax.sort((lo, hi, fid), num_keys=2)
+    ok = lo != _INT_MAX
+    n = lo.shape[0]
+    new = ok & ((lo != jnp.roll(lo, 1)) | (hi != jnp.roll(hi, 1)) | (jnp.arange(n) == 0))
+    run = jnp.where(ok, jnp.cumsum(new.astype(jnp.int32)) - 1, n - 1)
+    count = jax.ops.segment_sum(ok.astype(jnp.int32), run, num_segments=n)
+    first = new
+    idx = jnp.where(first, run, n)  # the first half-edge of each run describes the edge
+    e_lo = jnp.full((n + 1,), _INT_MAX, jnp.int32).at[idx].set(lo)[:n]
+    e_hi = jnp.full((n + 1,), _INT_MAX, jnp.int32).at[idx].set(hi)[:n]
+    e_f = jnp.zeros((n + 1,), jnp.int32).at[idx].set(fid)[:n]
+    is_edge = jnp.arange(n) < jnp.sum(new)
+    return e_lo, e_hi, e_f, count, is_edge
+
+
+def _face_normals(pos, faces):
+    t = pos[faces]
+    return jnp.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])  # length = 2 area
+
+
+def _initial_quadrics(pos, faces, fvalid, boundary_weight):
+    nv = pos.shape[0]
+    n2 = _face_normals(pos, faces)
+    dbl_area = jnp.sqrt(jnp.sum(n2 * n2, -1))
+    unit = n2 / jnp.where(dbl_area > 0, dbl_area, 1.0)[:, None]
+    d = -jnp.sum(unit * pos[faces[:, 0]], -1)
+    kf = _plane_quadric(unit, d) * jnp.where(fvalid, 0.5 * dbl_area, 0.0)[:, None]
+    q = jnp.zeros((nv, 10), pos.dtype).at[faces.reshape(-1)].add(jnp.repeat(kf, 3, axis=0))
+    # boundary constraint planes
+    lo, hi, ef, count, is_edge = _edges(faces, fvalid)
+    bnd = is_edge & (count == 1)
+    lo_s, hi_s = jnp.where(bnd, lo, 0), jnp.where(bnd, hi, 0)
+    e = pos[hi_s] - pos[lo_s]
+    length2 = jnp.sum(e * e, -1)
+    nb = jnp.cross(e, unit[ef])
+    nb = nb / jnp.maximum(jnp.sqrt(jnp.sum(nb * nb, -1)), jnp.finfo(pos.dtype).tiny)[:, None]
+    db = -jnp.sum(nb * pos[lo_s], -1)
+    kb = _plane_quadric(nb, db) * jnp.where(bnd, boundary_weight * length2, 0.0)[:, None]
+    q = q.at[lo_s].add(kb).at[hi_s].add(kb)
+    on_boundary = jnp.zeros((nv,), bool).at[lo_s].max(bnd).at[hi_s].max(bnd)
+    return q, on_boundary
+
+
+def _round(state, target):
+    pos, q, faces, fvalid, vvalid, on_bnd, blocked, rounds, _ = state
+    nv = pos.shape[0]
+    lo, hi, ef, count, is_edge = _edges(faces, fvalid)
+    m = lo.shape[0]
+    a, b = jnp.where(is_edge, lo, 0), jnp.where(is_edge, hi, 0)
+    qa = _unpack(q[a] + q[b])
+    pa, pb = pos[a], pos[b]
+    mid = 0.5 * (pa + pb)
+    xs, det = _solve3(qa[:, :3, :3], -qa[:, :3, 3])
+    scale = jnp.trace(qa[:, :3, :3], axis1=-2, axis2=-1) / 3
+    elen = jnp.sqrt(jnp.sum((pb - pa) ** 2, -1))
+    good = (jnp.abs(det) > 1e-5 * jnp.abs(scale) ** 3) & jnp.all(jnp.isfinite(xs), -1) \
+        & (jnp.sqrt(jnp.sum((xs - mid) ** 2, -1)) <= elen)
+    cands = jnp.stack([jnp.where(good[:, None], xs, mid), pa, pb, mid], 1)  # (m, 4, 3)
+    costs = _cost(qa[:, None], cands)
+    cost = jnp.min(costs, axis=1)
+    interior = count == 2
+    legal = is_edge & (count <= 2) & ~(interior & on_bnd[a] & on_bnd[b])
+    # total order: rank of (cost, slot) among legal edges
+    # ties (flat regions cost ~0) broken by a hash of the edge, not by vertex order: an order
+    # that follows the vertex numbering has few local minima, a scrambled one many
+    # an edge refused before (link condition, or every candidate folded) waits until a collapse
+    # next to it changes its surroundings
+    legal = legal & ~(blocked[a] & blocked[b])
+    # Costs are bucketed by factors of sqrt(2) before the order is drawn: inside a bucket the
+    # order is a hash, so a smooth run of costs does not leave one local minimum per region
+    floor_c = 1e-9 * jnp.sum(jnp.where(is_edge, jnp.abs(scale) * elen * elen, 0.0)) / jnp.maximum(jnp.sum(is_edge), 1)
+    bucket = jnp.floor(2.0 * jnp.log2(jnp.maximum(cost, floor_c) / floor_c))
+    key = jnp.where(legal, bucket, jnp.inf)
+    h = (a.astype(jnp.uint32) * jnp.uint32(2654435761)) ^ (b.astype(jnp.uint32) * jnp.uint32(2246822519))
+    h = (h ^ (h >> 15)) * jnp.uint32(2654435769)
+    _, _, order = lax.sort((key, h, jnp.arange(m, dtype=jnp.int32)), num_keys=2)
+    rank = jnp.zeros((m,), jnp.int32).at[order].set(jnp.arange(m, dtype=jnp.int32))
+    n_legal = jnp.sum(legal)
+    rank = jnp.where(legal, rank, _INT_MAX)
+    # the eligible edges are the cheapest eighth; among them a random priority (the hash, as in
+    # Luby's independent sets) picks edges two edges apart, many per round
+    eligible = legal & (rank < jnp.maximum(n_legal // 8, 1))
+    _, hperm = lax.sort((jnp.where(eligible, h, jnp.uint32(0xFFFFFFFF)), jnp.arange(m, dtype=jnp.int32)), num_keys=1)
+    prio = jnp.zeros((m,), jnp.int32).at[hperm].set(jnp.arange(m, dtype=jnp.int32))  # unique
+    prio = jnp.where(eligible, prio, _INT_MAX)
+    m1 = jnp.full((nv,), _INT_MAX, jnp.int32).at[a].min(prio).at[b].min(prio)
+    m2 = m1.at[a].min(jnp.where(is_edge, m1[b], _INT_MAX)).at[b].min(jnp.where(is_edge, m1[a], _INT_MAX))
+    sel = eligible & (prio == m2[a]) & (prio == m2[b])
+    # link condition: common neighbours of a and b must be exactly the edge's triangles' apexes
+    partner = jnp.full((nv,), -1, jnp.int32).at[jnp.where(sel, a, nv)].set(b, mode="drop") \
+        .at[jnp.where(sel, b, nv)].set(a, mode="drop")
+    owner = jnp.full((nv,), m, jnp.int32).at[jnp.where(sel, a, nv)].set(jnp.arange(m, dtype=jnp.int32), mode="drop") \
+        .at[jnp.where(sel, b, nv)].set(jnp.arange(m, dtype=jnp.int32), mode="drop")
+    u = jnp.concatenate([a, b])
+    w = jnp.concatenate([b, a])
+    has = jnp.concatenate([is_edge, is_edge]) & (partner[u] >= 0) & (w != partner[u])
+    ekey = jnp.where(has, owner[u], m)
+    wkey = jnp.where(has, w, _INT_MAX)
+    ekey, wkey = lax.sort((ekey, wkey), num_keys=2)
+    dup = (ekey == jnp.roll(ekey, 1)) & (wkey == jnp.roll(wkey, 1)) & (ekey < m)
+    dup = dup.at[0].set(False)
+    common = jax.ops.segment_sum(dup.astype(jnp.int32), jnp.where(dup, ekey, m), num_segments=m + 1)[:m]
+    # ... and two valence-3 endpoints of an interior edge span a tetrahedron (both triangles on
+    # the apexes exist): collapsing would leave two faces back to back
+    valence = jnp.zeros((nv,), jnp.int32).at[a].add(is_edge.astype(jnp.int32)).at[b].add(is_edge.astype(jnp.int32))
+    tent = interior & (valence[a] == 3) & (valence[b] == 3)
+    ok = sel & (common == count) & ~tent
+    # fold-over: faces keeping one endpoint must not turn by more than ~84 degrees; of the four
+    # candidate positions, the cheapest that folds nothing is taken
+    fv = faces
+    part = partner[fv]  # (nf, 3)
+    moving = (part >= 0) & fvalid[:, None]
+    both = jnp.any(moving[:, :, None] & (fv[:, None, :] == part[:, :, None]), axis=(1, 2))
+    mv_slot = jnp.argmax(moving, axis=1)
+    mv_any = jnp.any(moving, axis=1) & ~both
+    e_of_face = jnp.where(mv_any, owner[jnp.take_along_axis(fv, mv_slot[:, None], 1)[:, 0]], m)
+    newp = cands[jnp.minimum(e_of_face, m - 1)]  # (nf, 4, 3)
+    t_old = pos[fv]
+    at_slot = (jnp.arange(3)[None, :] == mv_slot[:, None])[:, None, :, None]
+    t_new = jnp.where(at_slot, newp[:, :, None, :], t_old[:, None])  # (nf, 4, 3, 3)
+    n_old = jnp.cross(t_old[:, 1] - t_old[:, 0], t_old[:, 2] - t_old[:, 0])[:, None]
+    n_new = jnp.cross(t_new[..., 1, :] - t_new[..., 0, :], t_new[..., 2, :] - t_new[..., 0, :])
+    cosang = jnp.sum(n_old * n_new, -1)
+    n_old2 = jnp.sum(n_old * n_old, -1)  # a face that is already degenerate cannot fold
+    flip = mv_any[:, None] & (n_old2 > 0) & (cosang <= 0.1 * jnp.sqrt(n_old2 * jnp.sum(n_new * n_new, -1)))
+    folds = jnp.zeros((m + 1, 4), bool).at[e_of_face].max(flip)[:m]
+    costs_ok = jnp.where(folds, jnp.inf, costs)
+    best = jnp.argmin(costs_ok, axis=1)
+    target_pos = jnp.take_along_axis(cands, best[:, None, None], 1)[:, 0]
+    # a candidate that folds nothing but costs more than the edge was ranked by is a worse
+    # collapse than its turn in the order allows: the edge is refused instead
+    veto = jnp.all(folds, axis=1) | (jnp.min(costs_ok, axis=1) > 2.0 * cost + 1e-6 * jnp.abs(scale) * elen * elen)
+    refused = sel & (veto | (common != count) | tent)
+    blocked = blocked.at[jnp.where(refused, a, nv)].set(True, mode="drop") \
+        .at[jnp.where(refused, b, nv)].set(True, mode="drop")
+    ok = ok & ~veto
+    # land on the target: keep the cheapest collapses that are needed
+    nfv = jnp.sum(fvalid)
+    removes = jnp.where(interior, 2, 1)
+    need = jnp.maximum(nfv - target, 0)
+    ok_sorted = ok[order]
+    cum = jnp.cumsum(jnp.where(ok_sorted, removes[order], 0))
+    keep_sorted = ok_sorted & (cum - removes[order] < need)
+    ok = jnp.zeros((m,), bool).at[order].set(keep_sorted)
+    # collapse b into a
+    to = jnp.arange(nv, dtype=jnp.int32).at[jnp.where(ok, b, nv)].set(a, mode="drop")
+    pos = pos.at[jnp.where(ok, a, nv)].set(target_pos, mode="drop")
+    q = q.at[jnp.where(ok, a, nv)].add(q[b], mode="drop")
+    vvalid = vvalid.at[jnp.where(ok, b, nv)].set(False, mode="drop")
+    on_bnd = on_bnd.at[jnp.where(ok, a, nv)].max(on_bnd[b], mode="drop")
+    faces = to[faces]
+    fvalid = fvalid & (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    moved = jnp.zeros((nv + 1,), bool).at[jnp.where(ok, a, nv)].set(True, mode="drop")
+    touched = fvalid & jnp.any(moved[faces], axis=1)
+    blocked = blocked.at[jnp.where(touched[:, None], faces, nv)].set(False, mode="drop")
+    progress = jnp.sum(ok) + jnp.sum(refused)  # a refusal changes the next round's selection
+    return pos, q, faces, fvalid, vvalid, on_bnd, blocked, rounds + 1, progress.astype(jnp.int32)
+
+
+@functools.partial(jax.jit, static_argnames=("max_rounds",))
+def _decimate_core(pos, faces, fvalid, vvalid, target, boundary_weight, *, max_rounds):
+    # Quadric costs v^T Q v cancel catastrophically far from the origin in float32: work on
+    # coordinates centred on the used vertices and scaled to unit size, map back at the end.
+    nv = pos.shape[0]
+    used0 = jnp.zeros((nv + 1,), bool).at[jnp.where(fvalid[:, None], faces, nv)].set(True)[:nv]
+    w = used0.astype(pos.dtype)[:, None]
+    centre = jnp.sum(pos * w, 0) / jnp.maximum(jnp.sum(w), 1)
+    size = jnp.max(jnp.where(used0[:, None], jnp.abs(pos - centre), 0.0))
+    size = jnp.where(size > 0, size, 1.0)
+    pos = (pos - centre) / size
+    q, on_bnd = _initial_quadrics(pos, faces, fvalid, boundary_weight)
+
+    def cond(s):
+        return (jnp.sum(s[3]) > target) & (s[7] < max_rounds) & (s[8] > 0)
+
+    zero = jnp.zeros((pos.shape[0],), bool)
+    state = (pos, q, faces, fvalid, vvalid, on_bnd, zero, jnp.asarray(0, jnp.int32), jnp.asarray(1, jnp.int32))
+    state = lax.while_loop(cond, lambda s: _round(s, target), state)
+    pos, _, faces, fvalid, vvalid, _, _, rounds, _ = state
+    used = jnp.zeros((pos.shape[0] + 1,), bool).at[jnp.where(fvalid[:, None], faces, pos.shape[0])].set(True)
+    return pos * size + centre, faces, fvalid, vvalid & used[:-1], rounds
+
+
+@register(family="mesh", takes=Mesh, gives=Mesh, differentiable=False, refs=_REFS)
+def decimate(mesh: Mesh, /, *, ratio: float = 0.1, target_faces: int | None = None,
+             boundary_weight: float = 1000.0, max_rounds: int = 2000) -> Mesh:
+    """Reduce a triangle mesh to ``ratio`` of its faces by quadric-error edge collapses.
+
+    Args:
+      mesh: ``Mesh`` (manifold or with boundary; only valid faces count).
+      ratio: fraction of the valid faces to keep, in ``(0, 1]`` (default 0.1).
+      target_faces: a face count instead of ``ratio`` (>= 1; overrides it).
+      boundary_weight: weight of the boundary constraint planes relative to the face
+        planes (default 1000: boundaries stay put).
+      max_rounds: cap on the rounds of parallel collapses (static; default 2000). The loop
+        stops at the target; late rounds collapse few edges (fandisk 12,946 -> 1,294 faces
+        takes ~600 rounds).
+
+    Returns:
+      ``Mesh`` with the input's array shapes; removed faces and vertices are marked invalid.
+      Its valid-face count is the target (or one fewer) unless no legal collapse was left
+      before it (or ``max_rounds`` ran out): then it is larger.
+
+    Example:
+      An icosphere of 1,280 faces decimated to 10 %: 128 faces remain, still closed and
+      oriented, and no vertex moved off the unit sphere by more than 5 %:
+
+      >>> import jax.numpy as jnp, fsjax
+      >>> v, f = fsjax.synth.icosphere(3)
+      >>> d = fsjax.ops.decimate(fsjax.Mesh(jnp.asarray(v), jnp.asarray(f)), ratio=0.1)
+      >>> t = fsjax.ops.mesh_topology(d)
+      >>> int(t.faces), bool(t.closed), bool(t.oriented), int(t.euler)
+      (128, True, True, 2)
+      >>> r = jnp.linalg.norm(d.vertices[d.vertex_valid], axis=1)
+      >>> bool(jnp.all(jnp.abs(r - 1) < 0.05))
+      True
+    """
+    _check_mesh("decimate", mesh)
+    if target_faces is None:
+        check_range("decimate", "ratio", ratio, 0.0, 1.0, lo_open=True)
+        total = jnp.sum(mesh.face_valid)
+        target = jnp.ceil(ratio * total).astype(jnp.int32)
+    else:
+        target = jnp.asarray(check_static_int("decimate", "target_faces", target_faces, lo=1), jnp.int32)
+    check_range("decimate", "boundary_weight", boundary_weight, 0.0, None)
+    rounds = check_static_int("decimate", "max_rounds", max_rounds, lo=1)
+    pos, faces, fvalid, vvalid, _ = _decimate_core(
+        mesh.vertices, mesh.faces, mesh.face_valid, mesh.vertex_valid, target,
+        jnp.asarray(boundary_weight, mesh.vertices.dtype), max_rounds=rounds)
+    return Mesh(pos, faces, vertex_valid=vvalid, face_valid=fvalid, truncated=mesh.truncated)
