@@ -166,3 +166,15 @@ def check_grid(op: str, shape: Any, spacing: Any, origin: Any) -> tuple[tuple[in
                              f"numbers; got {val!r}")
         out.append(vals)
     return shp, out[0], out[1]
+
+
+def check_one(op: str, arg: str, value: Any, sort: type, field: str, ndim: int = 2) -> None:
+    """Refuse anything but one instance of ``sort`` (its ``field`` has ``ndim`` axes): ops that are
+    called directly take one mesh or cloud, and a batch goes through ``jax.vmap``."""
+    if not isinstance(value, sort):
+        article = "a " if sort.__name__[0] not in "AEIOU" else "an "
+        raise TypeError(f"{op}: argument {arg!r} must be {article}{sort.__name__}; got {type(value).__name__}")
+    arr = getattr(value, field)
+    if arr.ndim != ndim:
+        raise ValueError(f"{op}: argument {arg!r} must be one {sort.__name__} (batch with jax.vmap); got "
+                         f"{field} of shape {arr.shape}")

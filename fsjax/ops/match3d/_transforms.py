@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from ..._checks import check_choice, check_static_int
 from ...registry import register
 from ...types import Depth, Gaussians, Mesh, Points, Volume
-from .._common import check_grid
+from .._common import check_grid, check_one
 from ..measure3d._camera import depth_to_points
 from ..mesh._voxelize import mesh_to_volume
 from ..points._search import sample_surface
@@ -98,11 +98,7 @@ def points_to_volume(pts: Points, /, *, shape: tuple[int, int, int] = (16, 16, 1
       [1.75, 1.25, 2.25]
     """
     op = "points_to_volume"
-    if not isinstance(pts, Points):
-        raise TypeError(f"{op}: argument 'pts' must be Points; got {type(pts).__name__}")
-    if pts.xyz.ndim != 2:
-        raise ValueError(f"{op}: argument 'pts' must be one cloud (batch with jax.vmap); got xyz of shape "
-                         f"{pts.xyz.shape}")
+    check_one(op, "pts", pts, Points, "xyz")
     shp, sp, org = check_grid(op, shape, spacing, origin)
     dt = pts.xyz.dtype
     w = pts.valid.astype(dt)

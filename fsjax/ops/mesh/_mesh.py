@@ -33,6 +33,7 @@ from jax import lax
 from ..._checks import check_range, check_static_int
 from ...registry import register
 from ...types import Feature, Mesh, MeshTopology
+from .._common import check_one
 
 __all__ = ["mesh_area", "mesh_volume", "mesh_topology", "laplacian_smooth", "taubin_smooth"]
 
@@ -41,11 +42,7 @@ _INT_MAX = jnp.iinfo(jnp.int32).max
 
 
 def _check_mesh(op: str, mesh) -> None:
-    if not isinstance(mesh, Mesh):
-        raise TypeError(f"{op}: argument 'mesh' must be a Mesh; got {type(mesh).__name__}")
-    if mesh.vertices.ndim != 2:
-        raise ValueError(f"{op}: argument 'mesh' must be one mesh (batch with jax.vmap); got vertices "
-                         f"of shape {mesh.vertices.shape}")
+    check_one(op, "mesh", mesh, Mesh, "vertices")
 
 
 def _edge_runs(faces, face_valid):

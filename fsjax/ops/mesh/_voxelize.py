@@ -37,7 +37,7 @@ from jax import lax
 from ..._checks import check_choice
 from ...registry import register
 from ...types import Mesh, Volume
-from .._common import check_grid
+from .._common import check_grid, check_one
 
 __all__ = ["mesh_to_volume"]
 
@@ -163,11 +163,7 @@ def mesh_to_volume(mesh: Mesh, /, *, shape: tuple[int, int, int] = (16, 16, 16),
       (31.375, 33.51)
     """
     op = "mesh_to_volume"
-    if not isinstance(mesh, Mesh):
-        raise TypeError(f"{op}: argument 'mesh' must be a Mesh; got {type(mesh).__name__}")
-    if mesh.vertices.ndim != 2:
-        raise ValueError(f"{op}: argument 'mesh' must be one mesh (batch with jax.vmap); got vertices "
-                         f"of shape {mesh.vertices.shape}")
+    check_one(op, "mesh", mesh, Mesh, "vertices")
     check_choice(op, "kind", kind, _KINDS)
     shp, _, _ = check_grid(op, shape, spacing, origin)
     sp = tuple(float(x) for x in spacing)
