@@ -6,7 +6,7 @@ skeleton, binary, features), :mod:`.measure2d` (labels, segmentation, region
 measurement, contours, calipers, 2-D fits), :mod:`.matching` (correlation and shape
 matching), :mod:`.points` (point clouds, curvature, neighbour search, segmentation),
 :mod:`.measure3d` (photometric stereo, structured light, tomography, camera, rendering),
-:mod:`.mesh` (area, enclosed volume, topology, smoothing of a ``Mesh``) and
+:mod:`.mesh` (area, enclosed volume, topology, smoothing, decimation, subdivision of a ``Mesh``) and
 :mod:`.volume` (3-D filters, morphology, labels, distance, projections, iso-surfaces of a ``Volume``).
 Each family module lists its public names in ``__all__`` (the one export list); the
 domain packages export nothing themselves. Importing this package registers every op.
@@ -55,6 +55,7 @@ from .points._search import *  # noqa: F403
 from .points._segment import *  # noqa: F403
 from .mesh._decimate import *  # noqa: F403
 from .mesh._mesh import *  # noqa: F403
+from .mesh._subdivide import *  # noqa: F403
 from .mesh._voxelize import *  # noqa: F403
 from .volume._distance3d import *  # noqa: F403
 from .volume._filters3d import *  # noqa: F403
