@@ -64,6 +64,7 @@ from .volume._isosurface import *  # noqa: F403
 from .volume._label3d import *  # noqa: F403
 from .volume._morphology3d import *  # noqa: F403
 from .volume._project3d import *  # noqa: F403
+from .volume._resample3d import *  # noqa: F403
 from .volume._sdf import *  # noqa: F403
 from .volume._tsdf import *  # noqa: F403
 from .match3d._transforms import *  # noqa: F403

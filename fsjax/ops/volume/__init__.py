@@ -5,7 +5,8 @@ Sobel gradient magnitude, Laplacian of Gaussian), ``hessian3d`` (_hessian3d: Fra
 and blobness), ``morphology3d`` (_morphology3d),
 ``label3d`` (_label3d: connected components and region properties), ``distance3d``
 (_distance3d: exact anisotropic Euclidean distance transform), ``project3d``
-(_project3d: maximum / mean projections along an axis), ``isosurface`` (_isosurface:
+(_project3d: maximum / mean projections along an axis), ``resample3d`` (_resample3d: crop,
+pad, resample to a new spacing), ``isosurface`` (_isosurface:
 marching cubes, ``Volume -> Mesh``) and ``fusion`` (_tsdf: depth maps fused into a truncated
 signed distance volume, ``DepthStack -> Volume``).
 
