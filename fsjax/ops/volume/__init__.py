@@ -6,7 +6,7 @@ and blobness), ``morphology3d`` (_morphology3d),
 ``label3d`` (_label3d: connected components and region properties), ``distance3d``
 (_distance3d: exact anisotropic Euclidean distance transform), ``project3d``
 (_project3d: maximum / mean projections along an axis), ``resample3d`` (_resample3d: crop,
-pad, resample to a new spacing), ``isosurface`` (_isosurface:
+pad, resample to a new spacing), ``watershed3d`` (_watershed3d: marker-controlled watershed), ``isosurface`` (_isosurface:
 marching cubes, ``Volume -> Mesh``) and ``fusion`` (_tsdf: depth maps fused into a truncated
 signed distance volume, ``DepthStack -> Volume``).
 

@@ -67,6 +67,31 @@ def _check_conn(op: str, connectivity) -> int:
     return int(connectivity)
 
 
+def _shift_min(g, axis: int, fill):
+    """``min(g[i - 1], g[i], g[i + 1])`` along ``axis`` (``fill`` outside)."""
+    n_ax = g.shape[axis]
+    widths = [(0, 0)] * 3
+    widths[axis] = (1, 1)
+    p = jnp.pad(g, widths, constant_values=fill)
+    sl = lambda a: tuple(slice(a, a + n_ax) if k == axis else slice(None) for k in range(3))  # noqa: E731
+    return jnp.minimum(jnp.minimum(p[sl(0)], p[sl(1)]), p[sl(2)])
+
+
+def neighbour_min3d(g, connectivity: int, fill):
+    """Minimum of ``g`` ``(D, H, W)`` over each voxel and its 6 / 18 / 26 neighbours (``fill`` outside).
+
+    The 3x3x3 cube is separable (three 3-tap minima); the 18-neighbourhood is the union of
+    the three axis-aligned 3x3 squares through the centre; the 6-neighbourhood the three
+    3-tap lines.
+    """
+    if connectivity == 26:
+        return _shift_min(_shift_min(_shift_min(g, 0, fill), 1, fill), 2, fill)
+    if connectivity == 18:
+        m1, m2 = _shift_min(g, 1, fill), _shift_min(g, 2, fill)
+        return jnp.minimum(jnp.minimum(_shift_min(m1, 0, fill), _shift_min(m2, 0, fill)), _shift_min(m1, 2, fill))
+    return jnp.minimum(jnp.minimum(_shift_min(g, 0, fill), _shift_min(g, 1, fill)), _shift_min(g, 2, fill))
+
+
 def _components(fg, connectivity: int):
     """Root (smallest flat index of its component) of every voxel of the bool ``fg`` ``(D, H, W)``
     (background voxels are their own roots), and the number of rounds."""
@@ -75,27 +100,8 @@ def _components(fg, connectivity: int):
     idx = jnp.arange(n, dtype=jnp.int32)
     fgf = fg.reshape(-1)
 
-    def shift_min(g, axis):
-        """``min(g[i - 1], g[i], g[i + 1])`` along ``axis`` (``INT_MAX`` outside)."""
-        n_ax = g.shape[axis]
-        widths = [(0, 0)] * 3
-        widths[axis] = (1, 1)
-        p = jnp.pad(g, widths, constant_values=_INT_MAX)
-        sl = lambda a: tuple(slice(a, a + n_ax) if k == axis else slice(None) for k in range(3))  # noqa: E731
-        return jnp.minimum(jnp.minimum(p[sl(0)], p[sl(1)]), p[sl(2)])
-
     def neighbour_min(g):
-        # the 3x3x3 cube is separable (three 3-tap minima); the 18-neighbourhood is the union of
-        # the three axis-aligned 3x3 squares through the centre; the 6-neighbourhood the three
-        # 3-tap lines
-        if connectivity == 26:
-            out = shift_min(shift_min(shift_min(g, 0), 1), 2)
-        elif connectivity == 18:
-            m1, m2 = shift_min(g, 1), shift_min(g, 2)
-            out = jnp.minimum(jnp.minimum(shift_min(m1, 0), shift_min(m2, 0)), shift_min(m1, 2))
-        else:
-            out = jnp.minimum(jnp.minimum(shift_min(g, 0), shift_min(g, 1)), shift_min(g, 2))
-        return out.reshape(-1)
+        return neighbour_min3d(g, connectivity, _INT_MAX).reshape(-1)
 
     def jump(f):
         return f.at[f].get(mode="promise_in_bounds")
