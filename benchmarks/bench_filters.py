@@ -668,6 +668,7 @@ produced and the load of the machine while it ran.
 | [benchmarks_render.md](benchmarks_render.md) | mesh rasteriser depth, 50k and 200k faces at 512 x 512 | Open3D RaycastingScene |
 | [benchmarks_bundle_adjust.md](benchmarks_bundle_adjust.md) | bundle adjustment 20 x 2,000; scaling 10-200 cameras | SciPy least_squares |
 | [benchmarks_evolve.md](benchmarks_evolve.md) | one GA generation, population of 64 in one call | per-individual pipelines, NumPy/SciPy loop |
+| [benchmarks_tsdf.md](benchmarks_tsdf.md) | TSDF fusion of 24 rendered bunny depth maps (96^3) and its mesh: time per view, Chamfer to the true surface | Open3D UniformTSDFVolume |
 | [splatting.md](splatting.md) | splat rasteriser step time, training, budget sweep | (no CPU peer) |"""
 
 def write_docs(results: list[OpResult], args, meta: dict[str, Any]) -> None:
