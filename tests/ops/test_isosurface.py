@@ -160,3 +160,27 @@ def test_fails_closed():
     # no surface: an empty mesh, not a guessed one
     e = fsjax.ops.marching_cubes(fsjax.Volume(jnp.zeros((4, 5, 6))), level=0.5)
     assert int(e.face_valid.sum()) == 0 and int(e.vertex_valid.sum()) == 0 and not bool(e.truncated)
+
+
+def test_infinite_voxels_carry_no_data():
+    # a ball SDF with the half-space z < 8 marked no-data (-inf): the mesh is the upper part of
+    # the sphere only, every vertex on it, open where the data stops; without the marks (the
+    # null) the whole sphere closes
+    z, y, x = np.mgrid[:20, :20, :20] - 9.5
+    d = 6.0 - np.sqrt(x**2 + y**2 + z**2)
+    full = fsjax.ops.marching_cubes(fsjax.Volume(jnp.asarray(d)), level=0.0)
+    for val in (-np.inf, np.inf):
+        cut = np.where(np.mgrid[:20, :20, :20][0] < 8, val, d)
+        m = fsjax.ops.marching_cubes(fsjax.Volume(jnp.asarray(cut)), level=0.0)
+        v = np.asarray(m.vertices)[np.asarray(m.vertex_valid)]
+        r = np.linalg.norm(v - 9.5, axis=1)
+        assert np.isfinite(v).all() and np.abs(r - 6.0).max() < 0.1
+        assert v[:, 2].min() >= 8.0                     # nothing next to the no-data voxels
+        t = fsjax.ops.mesh_topology(m)
+        assert not bool(t.closed) and int(t.boundary_edges) > 0 and int(t.nonmanifold_edges) == 0
+        nf = int(np.asarray(m.face_valid).sum())
+        # the cap z >= 8 is (15.5 - 8) / 12 = 62.5 % of the sphere's area (Archimedes)
+        assert 0.55 < nf / int(np.asarray(full.face_valid).sum()) < 0.66
+    assert bool(fsjax.ops.mesh_topology(full).closed)
+    with pytest.raises(ValueError, match="marching_cubes.*NaN"):
+        fsjax.ops.marching_cubes(fsjax.Volume(jnp.asarray(np.where(cut > 5, np.nan, d))), level=0.0)

@@ -75,3 +75,31 @@ def test_grid_axes_follow_x_y_z():
     wall = fsjax.DepthStack(jnp.full((1, 16, 16), 4.5), jax.tree.map(lambda a: a[None], cam))
     v = fsjax.ops.tsdf_fuse(wall, shape=(1, 1, 8), origin=(0.0, 0.0, 0.0), truncation=2.0)
     assert np.allclose(np.asarray(v.data[0, 0, :]), [-1, -1, -1, -0.75, -0.25, 0.25, 0.75, 1.0])
+
+
+def test_one_sided_view_fill_holes_off_keeps_only_measured_surface():
+    # the unit sphere seen by one camera (+x side). With hole filling (the default) the voxels
+    # behind the visible cap that no view measured are classified inside, and the surface closes
+    # over them far from the sphere (the null: a surface never measured). With fill_holes=False
+    # they carry no data (-inf) and marching cubes makes only the measured cap.
+    full = _sphere_views()
+    one = fsjax.DepthStack(full.z[:1], jax.tree.map(lambda a: a[:1], full.camera))
+    sp = 0.1
+    kw = dict(shape=(25, 25, 25), spacing=(sp, sp, sp), origin=(-1.2, -1.2, -1.2), truncation=0.3)
+    errs = {}
+    for fill in (True, False):
+        vol = fsjax.ops.tsdf_fuse(one, fill_holes=fill, **kw)
+        assert bool(jnp.all(jnp.isfinite(vol.data))) == fill
+        m = fsjax.ops.marching_cubes(vol, level=0.0)
+        v = np.asarray(m.vertices)[np.asarray(m.vertex_valid)] - 1.2
+        assert np.isfinite(v).all()
+        errs[fill] = (np.abs(np.linalg.norm(v, axis=1) - 1.0) / sp, v, fsjax.ops.mesh_topology(m))
+    e_fill, _, t_fill = errs[True]
+    e_meas, v_meas, t_meas = errs[False]
+    print(f"one view: filled surface max error {e_fill.max():.2f} voxel (closed {bool(t_fill.closed)}); "
+          f"measured-only max {e_meas.max():.3f}, median {np.median(e_meas):.3f} voxel, "
+          f"{int(t_meas.boundary_edges)} boundary edges")
+    assert e_fill.max() > 3.0                    # the null invents surface voxels away from the sphere
+    assert np.median(e_meas) <= 0.1 and e_meas.max() < 1.0
+    assert v_meas[:, 0].min() > -0.05            # only the side the camera saw (x > 0)
+    assert int(t_meas.boundary_edges) > 0 and not bool(t_meas.closed)

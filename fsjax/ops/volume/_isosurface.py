@@ -37,6 +37,10 @@ Conventions:
   lost a vertex are dropped with ``face_valid = False``).
 * **Fails closed**: a NaN anywhere in the volume makes every vertex NaN (no surface is
   guessed around a hole in the data); ``level`` is a number (traced or not).
+* **No-data voxels**: ``+-inf`` marks a voxel that carries no measurement (``tsdf_fuse`` with
+  ``fill_holes=False`` writes ``-inf`` for voxels no view observed). No vertex lies on an edge
+  with an infinite end and no face is made in a cube with an infinite corner, so the surface
+  stops at the data's edge (boundary edges there) instead of closing over it.
 * **Differentiable** in the vertex positions with respect to the volume values and
   ``level`` (through the interpolation ``t = (level - v0) / (v1 - v0)``); the topology (which
   edges are crossed) is piecewise constant.
@@ -224,9 +228,12 @@ def _mc_core(vol, level, *, max_faces: int, max_vertices: int, spacing):
     idx = lax.optimization_barrier(jnp.arange(N, dtype=jnp.int32))
     jx, iy, kz = idx % W, (idx // W) % H, idx // HW
     # crossed grid edges, axis-major: edge id = axis * N + voxel (axis 0 = x, 1 = y, 2 = z)
-    crossed = jnp.concatenate([(ins != _ahead(ins, 1)) & (jx < W - 1),
-                               (ins != _ahead(ins, W)) & (iy < H - 1),
-                               (ins != _ahead(ins, HW)) & (kz < D - 1)])
+    # +-inf voxels carry no data: no vertex on an edge with an infinite end
+    fin = jnp.isfinite(flat) | jnp.isnan(flat)
+    fx, fy, fz = fin & _ahead(fin, 1), fin & _ahead(fin, W), fin & _ahead(fin, HW)
+    crossed = jnp.concatenate([(ins != _ahead(ins, 1)) & (jx < W - 1) & fx,
+                               (ins != _ahead(ins, W)) & (iy < H - 1) & fy,
+                               (ins != _ahead(ins, HW)) & (kz < D - 1) & fz])
     words = _pack_bits(crossed)
     wstart, wend = _exclusive_cumsum(_popcount(words))
     n_vert = wend[-1]
@@ -258,7 +265,10 @@ def _mc_core(vol, level, *, max_faces: int, max_vertices: int, spacing):
     a = ins | (_ahead(ins, 1) << 1)
     b = a | (_ahead(a, W) << 2)
     case = (b | (_ahead(b, HW) << 4)).astype(jnp.int32)
-    ntri = jnp.where((jx < W - 1) & (iy < H - 1) & (kz < D - 1), jnp.asarray(_NTRI)[case], 0)
+    # ... and no face in a cube with an infinite corner
+    fcube = fx & _ahead(fx, W)
+    fcube = fcube & _ahead(fcube, HW)
+    ntri = jnp.where((jx < W - 1) & (iy < H - 1) & (kz < D - 1) & fcube, jnp.asarray(_NTRI)[case], 0)
     # active cubes -> slots (packed flags as for the edges), then faces per active cube
     awords = _pack_bits(ntri > 0)
     astart, aend = _exclusive_cumsum(_popcount(awords))
@@ -292,13 +302,14 @@ def _pow2(n: int) -> int:
     return 1 << max(6, int(n - 1).bit_length())
 
 
-@register(family="isosurface", takes=Volume, gives=Mesh, differentiable=False, refs=_REFS)
+@register(family="isosurface", takes=Volume, gives=Mesh, differentiable=False, refs=_REFS, infinite_ok=True)
 def marching_cubes(vol: Volume, /, *, level: float = 0.5, max_faces: int | None = None,
                    max_vertices: int | None = None) -> Mesh:
     """Triangle mesh of the iso-surface ``value == level`` of a volume (marching cubes).
 
     Args:
-      vol: ``Volume`` ``(D, H, W)``, at least 2 voxels along each axis.
+      vol: ``Volume`` ``(D, H, W)``, at least 2 voxels along each axis; ``+-inf`` voxels
+        carry no data (no surface is made next to them), NaN is refused.
       level: iso-level (default 0.5); inside is ``value > level``. A number, may be traced.
       max_faces: face capacity (static int >= 1); default ``4 (D H + H W + D W)``.
       max_vertices: vertex capacity (static int >= 1); default ``max_faces``.

@@ -18,11 +18,18 @@ Conventions:
   no return lies on a ray that met nothing, so that view observes it as empty (value -1).
   Right for rendered or otherwise hole-free depth; with a real sensor whose holes are
   dropouts, ``carve=False`` ignores no-return pixels (KinectFusion's rule).
-* **Unobserved voxels** (no view observes them) are ``+1`` when some view saw them behind its
-  surface by more than the truncation (occluded: the inside of a solid), else ``-1``
-  (never seen: treated as empty). This closes the surface of an object seen from all
-  around instead of leaving NaN holes that would stop marching cubes. Voxels outside every
-  view's frustum but occluded in one are classified inside: keep the grid within the views.
+* **Unobserved voxels** (no view observes them), ``fill_holes=True`` (default): ``+1`` when
+  some view saw them behind its surface by more than the truncation (occluded: the inside of
+  a solid), else ``-1`` (never seen: treated as empty). This closes the surface of an object
+  seen from all around (Curless and Levoy's hole filling). Voxels outside every view's
+  frustum but occluded in one are classified inside: keep the grid within the views. Where
+  observed-empty space meets occluded space that no view measured (the inside of an *open*
+  scan seen through its holes), the filled surface was never measured: on the bundled bunny
+  (an open scan) such surfaces are most of the Chamfer gap to Open3D
+  (``docs/benchmarks_tsdf.md``). ``fill_holes=False`` writes ``-inf`` (no data) for every
+  unobserved voxel instead: ``marching_cubes`` makes no face next to a no-data voxel, so the
+  mesh holds only measured surface (with boundary edges where the data stops), as Open3D's
+  extraction does.
 * Cost ``O(V D H W)`` (a ``lax.scan`` over the views; memory of one volume).
 * Fails closed: non-positive ``truncation`` or spacing is refused eagerly; a view whose camera
   has NaN parameters observes nothing.
@@ -45,8 +52,8 @@ from .._common import check_grid
 __all__ = ["tsdf_fuse"]
 
 
-@functools.partial(jax.jit, static_argnames=("shape", "spacing", "width", "height", "carve"))
-def _tsdf_core(z, K, dist, R, t, origin, truncation, *, shape, spacing, width, height, carve):
+@functools.partial(jax.jit, static_argnames=("shape", "spacing", "width", "height", "carve", "fill_holes"))
+def _tsdf_core(z, K, dist, R, t, origin, truncation, *, shape, spacing, width, height, carve, fill_holes=True):
     D, H, W = shape
     dz, dy, dx = spacing
     dt = z.dtype
@@ -80,7 +87,8 @@ def _tsdf_core(z, K, dist, R, t, origin, truncation, *, shape, spacing, width, h
 
     init = (jnp.zeros(n, dt), jnp.zeros(n, dt), jnp.zeros(n, bool))
     (acc, wsum, occluded), _ = lax.scan(view, init, (z, K, dist, R, t))
-    out = jnp.where(wsum > 0, acc / jnp.maximum(wsum, 1.0), jnp.where(occluded, 1.0, -1.0))
+    unobserved = jnp.where(occluded, 1.0, -1.0) if fill_holes else -jnp.inf
+    out = jnp.where(wsum > 0, acc / jnp.maximum(wsum, 1.0), unobserved)
     return out.reshape(D, H, W)
 
 
@@ -91,7 +99,7 @@ def _tsdf_core(z, K, dist, R, t, origin, truncation, *, shape, spacing, width, h
 def tsdf_fuse(depth: DepthStack, /, *, shape: tuple[int, int, int] = (16, 16, 16),
               spacing: tuple[float, float, float] = (1.0, 1.0, 1.0),
               origin: tuple[float, float, float] = (0.0, 0.0, 0.0), truncation: float = 3.0,
-              carve: bool = True) -> Volume:
+              carve: bool = True, fill_holes: bool = True) -> Volume:
     """Fuse one or several depth maps into a truncated signed distance volume (positive inside).
 
     Args:
@@ -102,10 +110,13 @@ def tsdf_fuse(depth: DepthStack, /, *, shape: tuple[int, int, int] = (16, 16, 16
       truncation: distance (depth unit, > 0; default 3.0) over which the signed distance is
         kept; about 2-4 voxels.
       carve: a pixel with no return observes its ray as empty (default True; static).
+      fill_holes: unobserved voxels are classified inside / empty (default True) or written
+        as ``-inf``, no data (False); see the module notes (static).
 
     Returns:
       ``Volume`` ``(D, H, W)`` in ``[-1, 1]`` (signed distance over ``truncation``), positive
-      behind the observed surfaces; extract the surface with ``marching_cubes(level=0)``.
+      behind the observed surfaces, ``-inf`` for unobserved voxels when ``fill_holes=False``;
+      extract the surface with ``marching_cubes(level=0)``.
 
     Example:
       One camera looking down +z at a flat wall at depth 4.5: the voxels in front of the
@@ -130,5 +141,5 @@ def tsdf_fuse(depth: DepthStack, /, *, shape: tuple[int, int, int] = (16, 16, 16
     data = _tsdf_core(z.astype(dt), K.astype(dt), dist.astype(dt), R.astype(dt), t.astype(dt),
                       jnp.asarray(origin, dt), jnp.asarray(truncation, dt), shape=shp,
                       spacing=tuple(float(s) for s in spacing), width=cam.width, height=cam.height,
-                      carve=bool(carve))
+                      carve=bool(carve), fill_holes=bool(fill_holes))
     return Volume(data, spacing=tuple(float(s) for s in spacing))
