@@ -161,6 +161,7 @@ def _build_table():
 
 
 _TABLE, _NTRI = _build_table()
+assert np.array_equal(_NTRI > 0, (np.arange(256) != 0) & (np.arange(256) != 255)), "a mixed cube without faces"
 _TMAX = int(_TABLE.shape[1])
 _EDGE_C0 = np.array([e[0] for e in _EDGES], np.int32)
 _EDGE_AXIS = np.array([e[2] for e in _EDGES], np.int32)
@@ -205,6 +206,18 @@ def _exclusive_cumsum(x):
     return c - x, c
 
 
+def _slots_to_runs(ends, n_slots: int):
+    """For each slot ``s`` in ``[0, n_slots)``, the number of ``ends`` entries ``<= s``.
+
+    Equal to ``jnp.searchsorted(ends, arange(n_slots), side="right")`` for a non-decreasing
+    ``ends`` (running counts), found by a histogram of ``ends`` and one cumulative sum:
+    ``O(len(ends) + n_slots)`` instead of a binary search per slot (measured 6.5 -> 1.2 ms
+    for 196,608 slots over 196,608 words).
+    """
+    hist = jnp.zeros(n_slots + 1, jnp.int32).at[jnp.minimum(ends, n_slots)].add(1)
+    return jnp.cumsum(hist[:n_slots])
+
+
 def _ahead(x, k: int):
     """``y[e] = x[e + k]`` on a flat array (zero past the end)."""
     return jnp.pad(x, (0, k))[k:]
@@ -246,8 +259,7 @@ def _mc_core(vol, level, *, max_faces: int, max_vertices: int, spacing):
     # vertex slot -> edge: its word by binary search on the running counts, then the bit
     slot_v = jnp.arange(max_vertices, dtype=jnp.int32)
     vertex_valid = slot_v < n_vert
-    w = jnp.minimum(jnp.searchsorted(wend, slot_v, side="right", method="scan"),
-                    words.shape[0] - 1).astype(jnp.int32)
+    w = jnp.minimum(_slots_to_runs(wend, max_vertices), words.shape[0] - 1).astype(jnp.int32)
     edge = jnp.where(vertex_valid, 32 * w + _select_bit(words[w], slot_v - wstart[w]), 0)
     # vertex positions: linear interpolation along the edge
     axis, node = edge // N, edge % N
@@ -268,22 +280,26 @@ def _mc_core(vol, level, *, max_faces: int, max_vertices: int, spacing):
     # ... and no face in a cube with an infinite corner
     fcube = fx & _ahead(fx, W)
     fcube = fcube & _ahead(fcube, HW)
-    ntri = jnp.where((jx < W - 1) & (iy < H - 1) & (kz < D - 1) & fcube, jnp.asarray(_NTRI)[case], 0)
+    cube_ok = (jx < W - 1) & (iy < H - 1) & (kz < D - 1) & fcube
+    # a cube makes faces iff its corners are mixed (_NTRI > 0 exactly there, checked at import):
+    # no table lookup over the grid, only per active cube
+    active = cube_ok & (case != 0) & (case != 255)
     # active cubes -> slots (packed flags as for the edges), then faces per active cube
-    awords = _pack_bits(ntri > 0)
+    awords = _pack_bits(active)
     astart, aend = _exclusive_cumsum(_popcount(awords))
     n_active = aend[-1]
     slot_a = jnp.arange(max_faces, dtype=jnp.int32)
-    wa = jnp.minimum(jnp.searchsorted(aend, slot_a, side="right", method="scan"),
-                     awords.shape[0] - 1).astype(jnp.int32)
+    wa = jnp.minimum(_slots_to_runs(aend, max_faces), awords.shape[0] - 1).astype(jnp.int32)
     cube = jnp.where(slot_a < n_active, 32 * wa + _select_bit(awords[wa], slot_a - astart[wa]), 0)
-    nt = jnp.where(slot_a < n_active, ntri[cube], 0)
+    ntri = jnp.asarray(_NTRI, jnp.int32)
+    nt = jnp.where(slot_a < n_active, ntri[case[cube]], 0)
     fstart, fend = _exclusive_cumsum(nt)
-    n_face = jnp.where(n_active > max_faces, jnp.sum(ntri), fend[-1])
+    # the total face count over all cubes is needed only when the active cubes overflow the slots
+    n_face = lax.cond(n_active > max_faces, lambda: jnp.sum(jnp.where(cube_ok, ntri[case], 0)).astype(jnp.int32), lambda: fend[-1].astype(jnp.int32))
     # face slot -> active cube by binary search, then its k-th triangle
     slot_f = jnp.arange(max_faces, dtype=jnp.int32)
     face_in = slot_f < jnp.minimum(n_face, fend[-1])
-    ac = jnp.minimum(jnp.searchsorted(fend, slot_f, side="right", method="scan"), max_faces - 1)
+    ac = jnp.minimum(_slots_to_runs(fend, max_faces), max_faces - 1)
     kk = slot_f - fstart[ac]
     cube = cube[ac]
     local = jnp.asarray(_TABLE)[case[cube], jnp.clip(kk, 0, _TMAX - 1)]       # (F, 3) local edges
