@@ -10,14 +10,14 @@ import sys
 import pytest
 
 import fsjax.io
-from fsjax.io import image, mesh, splat
+from fsjax.io import image, mesh, rle, splat
 
 
 def test_package_reexports_every_public_name():
-    for mod in (image, mesh, splat):
+    for mod in (image, mesh, rle, splat):
         for name in mod.__all__:
             assert getattr(fsjax.io, name) is getattr(mod, name), (mod.__name__, name)
-    assert sorted(fsjax.io.__all__) == sorted(image.__all__ + mesh.__all__ + splat.__all__)
+    assert sorted(fsjax.io.__all__) == sorted(image.__all__ + mesh.__all__ + rle.__all__ + splat.__all__)
 
 
 @pytest.mark.parametrize("old,new,names", [
