@@ -63,6 +63,10 @@ def _ellipse_points(seed, noise, c=(24.2, 30.6), a=12.0, b=5.0, angle_deg=25.0):
 _circle = jax.jit(jax.vmap(lambda c: fsjax.ops.fit_circle(c, robust=False)))
 _circle_robust = jax.jit(jax.vmap(lambda c: fsjax.ops.fit_circle(c)))
 _circle_kasa = jax.jit(jax.vmap(lambda c: fsjax.ops.fit_circle(c, robust=False, refine=False)))
+# the plain fit without the support tests: the null of the outlier test (with 20 % outliers
+# the plain fit's misfit is refused by the default support test, as it should be)
+_circle_unchecked = jax.jit(jax.vmap(lambda c: fsjax.ops.fit_circle(c, robust=False, max_rel_rms=float("inf"),
+                                                                    max_rel_se=float("inf"))))
 _ellipse = jax.jit(jax.vmap(lambda c: fsjax.ops.fit_ellipse(c, robust=False)))
 _ellipse_direct = jax.jit(jax.vmap(lambda c: fsjax.ops.fit_ellipse(c, robust=False, refine=False)))
 
@@ -155,7 +159,8 @@ def test_circle_short_arc_refinement_beats_kasa():
 def test_circle_robust_beats_plain_with_outliers():
     data = [_circle_points(10 + i, 0.1, outliers=0.2) for i in range(4)]
     batch = _stack([_contour(p) for p, _ in data])
-    plain, rob = _circle(batch), _circle_robust(batch)
+    plain, rob = _circle_unchecked(batch), _circle_robust(batch)
+    refused = _circle(batch)
 
     def err(f):
         return np.maximum(np.abs(np.asarray(f["radius"]) - 15.2),
@@ -166,6 +171,10 @@ def test_circle_robust_beats_plain_with_outliers():
     print(f"fit_circle with 20% outliers, 4 seeds: max(centre, radius) error plain {np.round(e_plain, 3)}, "
           f"robust {np.round(e_rob, 4)}; n_used {np.asarray(rob.n_used)} (160 inliers)")
     assert np.all(e_rob < e_plain) and np.all(e_rob < 0.05)
+    # the default plain fit does not pass the outliers' misfit off as a circle
+    rel = np.asarray(plain.rms)[:4] / np.asarray(plain["radius"])[:4]
+    print(f"plain fit rms / radius with 20 % outliers: {np.round(rel, 3)} (limit 0.15): refused")
+    assert np.all(rel > 0.15) and not bool(jnp.any(refused.converged[:4]))
     assert np.all(np.abs(np.asarray(rob.n_used) - 160) <= 6)
     assert bool(jnp.all(rob.converged))
 
@@ -282,3 +291,59 @@ def test_ellipse_on_a_straight_contour_refused():
     fe = fsjax.ops.fit_ellipse(fsjax.Contour(jnp.asarray(ell), valid=jnp.ones(60, bool)))
     assert not bool(fl.converged) and bool(jnp.all(jnp.isnan(fl.params)))
     assert bool(fe.converged) and abs(float(fe.params[2]) - 10) < 0.1 and abs(float(fe.params[3]) - 3) < 0.1
+
+
+def _arc(n, r, noise, arc, seed):
+    g = np.random.default_rng(seed)
+    t = g.uniform(0, arc, n)
+    return np.stack([20 + r * np.sin(t), 30 + r * np.cos(t)], -1) + noise * g.standard_normal((n, 2))
+
+
+def _ell(n, a, b, noise, arc, seed):
+    g = np.random.default_rng(seed)
+    t = g.uniform(0, arc, n)
+    return np.stack([20 + b * np.sin(t), 30 + a * np.cos(t)], -1) + noise * g.standard_normal((n, 2))
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_circle_and_ellipse_refuse_points_that_do_not_support_them(dtype):
+    """Issue 20: fit_circle / fit_ellipse fitted a random scatter (60 uniform points in a 10 x 10
+    square: a converged circle of r 4.11 with rms 1.48, and an ellipse). Now refused by the misfit
+    test (rms against the size) and the determination test (standard errors against the size);
+    true circles and ellipses with noise and partial arcs are still fitted."""
+    rng = np.random.default_rng(5)
+    bad = {f"scatter {i}": rng.uniform(0, 10, (60, 2)) for i in range(4)}
+    bad["gaussian blob"] = 5 * rng.standard_normal((100, 2))
+    bad["two tight clusters"] = np.concatenate([0.1 * rng.standard_normal((30, 2)),
+                                                0.1 * rng.standard_normal((30, 2)) + [0, 10]])
+    bad_circle_only = {"45-degree arc, 5 % noise": _arc(60, 10, 0.5, np.pi / 4, 1),
+                       "ellipse 12 x 5 (a circle is the wrong model)": _ell(100, 12, 5, 0.05, 2 * np.pi, 2)}
+    good_circle = {"full, 1 %": _arc(100, 10, 0.1, 2 * np.pi, 3), "full, 10 %": _arc(100, 10, 1.0, 2 * np.pi, 4),
+                   "90-degree arc, 5 %": _arc(60, 10, 0.5, np.pi / 2, 0), "3 exact points": _arc(3, 10, 0.0, 2 * np.pi, 6)}
+    good_ellipse = {"full, 10 % of b": _ell(100, 12, 5, 0.5, 2 * np.pi, 7), "half, 5 % of b": _ell(100, 12, 5, 0.25, np.pi, 8),
+                    "5 exact points": _ell(5, 12, 5, 0.0, 2 * np.pi, 9)}
+
+    def run(op, pts):
+        return getattr(fsjax.ops, op)(fsjax.Contour(jnp.asarray(pts.astype(dtype))))
+
+    for name, p in {**bad, **bad_circle_only}.items():
+        f = run("fit_circle", p)
+        unchecked = fsjax.ops.fit_circle(fsjax.Contour(jnp.asarray(p.astype(dtype))), max_rel_rms=float("inf"),
+                                         max_rel_se=float("inf"))
+        assert not bool(f.converged) and bool(jnp.all(jnp.isnan(f.params))), ("circle", name)
+        # the null (no support test) passes most of them off as circles
+        if name.startswith("scatter"):
+            assert bool(unchecked.converged), name
+    for name, p in bad.items():
+        f = run("fit_ellipse", p)
+        assert not bool(f.converged) and bool(jnp.all(jnp.isnan(f.params))), ("ellipse", name)
+    for name, p in good_circle.items():
+        f = run("fit_circle", p)
+        assert bool(f.converged) and abs(float(f["radius"]) - 10) < 0.5, ("circle", name, f.params)
+    for name, p in good_ellipse.items():
+        f = run("fit_ellipse", p)
+        assert bool(f.converged) and abs(float(f["b"]) - 5) < 0.3 and abs(float(f["a"]) - 12) < 0.6, ("ellipse", name)
+    with pytest.raises(ValueError, match="fit_circle.*max_rel_rms"):
+        fsjax.ops.fit_circle(fsjax.Contour(jnp.asarray(good_circle["full, 1 %"])), max_rel_rms=0.0)
+    with pytest.raises(ValueError, match="fit_ellipse.*max_rel_se"):
+        fsjax.ops.fit_ellipse(fsjax.Contour(jnp.asarray(good_circle["full, 1 %"])), max_rel_se=float("nan"))

@@ -22,6 +22,16 @@ Conventions (stated once for the family):
   5 ellipse), collinear points for a circle or an ellipse, coincident points
   for a line, a conic that is not an ellipse, or a solver that did not
   converge give ``converged=False`` and NaN parameters and ``rms``.
+* Support (circle and ellipse): a converged fit is still refused (``converged=False``,
+  NaN) when the points do not support the model, by two tests stated against the model's
+  size ``L`` (radius; minor semi-axis): the misfit ``rms <= max_rel_rms * L`` (default 0.15:
+  a random scatter fits a circle with ``rms/r`` 0.29-0.52), and the determination: the
+  standard errors of the centre and the radius / semi-axes from the Gauss-Newton covariance
+  ``s^2 (J^T J)^-1`` (``s^2 = RSS / (n - p)``) at most ``max_rel_se * L`` (default 0.1: two
+  tight clusters leave a family of circles through them, 0.12; a 45-degree arc with 5 %
+  noise, 0.23). Exact points (``s = 0``) always pass, so three points still define a circle.
+  Defaults chosen from the measurements in ``tests/ops/test_fit2d.py`` (printed there);
+  ``inf`` disables a test.
 * Numerics: coordinates are centred on the centroid and scaled by their RMS
   distance before fitting (Hartley-style normalisation); solves use optimistix
   with ``throw=False``. Levenberg-Marquardt stops at ``rtol = atol = 1e-6`` on
@@ -48,7 +58,7 @@ import optimistix as optx
 from ..._checks import check_positive, check_static_int
 from ..._linalg import levenberg_marquardt
 from ...registry import LinKnob, poison, register
-from ...types import Contour, Fit
+from ...types import Contour, Fit, is_concrete
 
 __all__ = ["fit_line", "fit_circle", "fit_ellipse"]
 
@@ -166,6 +176,48 @@ def _finish(params, ok, resid_fn, pts, used, iterations, names, kind):
     params = jnp.where(ok, params, jnp.nan)
     rms = jnp.where(ok, rms, jnp.nan)
     return Fit(params, names, kind, rms, ok, iterations=iterations, n_used=n)
+
+
+def _unsupported(f, resid_fn, pts, used, size, checked, max_rel_rms, max_rel_se):
+    """True where the points do not support the fitted model (see "Support" in the module notes).
+
+    ``size`` is the model's scale (radius, minor semi-axis); ``checked`` the indices of the
+    parameters whose standard errors must be small against it (centre and axes, never an
+    angle, which a near-circle leaves undetermined by design).
+    """
+    p = jax.lax.stop_gradient(jnp.where(jnp.isfinite(f.params), f.params, 0.0))
+    pts = jax.lax.stop_gradient(pts)
+    w = used.astype(pts.dtype)
+    jac = jax.jacfwd(lambda q: resid_fn(q, pts))(p) * w[:, None]
+    r = resid_fn(p, pts) * w
+    n, k = jnp.sum(w), p.shape[0]
+    s2 = jnp.sum(r * r) / jnp.maximum(n - k, 1.0)
+    jtj = jac.T @ jac
+    # scale-free inverse diagonal: J^T J = D C D with D = sqrt(diag), C well scaled
+    d = jnp.sqrt(jnp.maximum(jnp.diag(jtj), jnp.finfo(pts.dtype).tiny))
+    c = jtj / (d[:, None] * d[None, :])
+    # a true inverse (not a pseudo-inverse, which would drop the undetermined direction and
+    # report it as determined); singular gives inf / NaN, which the test below refuses
+    cinv_diag = jnp.diag(jnp.linalg.inv(c))
+    # a negative diagonal of the inverse is rounding on a near-singular matrix: undetermined
+    se = jnp.where(cinv_diag >= 0, jnp.sqrt(jnp.maximum(s2 * cinv_diag, 0.0)), jnp.inf) / d
+    se_rel = jnp.max(se[jnp.asarray(checked)]) / size
+    misfit = ~(f.rms <= max_rel_rms * size)
+    undetermined = ~(se_rel <= max_rel_se)
+    return f.converged & (misfit | undetermined)
+
+
+def _check_support(op, max_rel_rms, max_rel_se):
+    """Positive numbers; ``inf`` allowed (the test is off), NaN and non-numbers refused."""
+    for name, v in (("max_rel_rms", max_rel_rms), ("max_rel_se", max_rel_se)):
+        if not is_concrete(v):
+            continue
+        try:
+            x = float(v)
+        except (TypeError, ValueError):
+            raise TypeError(f"{op}: argument {name!r} must be a positive number (inf: no test); got {v!r}") from None
+        if isinstance(v, bool) or not x > 0:
+            raise ValueError(f"{op}: argument {name!r} must be a positive number (inf: no test); got {v!r}")
 
 
 def _check(op, k, rounds, max_steps):
@@ -303,11 +355,13 @@ def _circle_resid(params, pts):
 
 
 @functools.partial(jax.jit, static_argnames=("robust", "rounds", "refine", "max_steps"))
-def _fit_circle_core(pts, valid, k, *, robust, rounds, refine, max_steps):
+def _fit_circle_core(pts, valid, k, max_rel_rms, max_rel_se, *, robust, rounds, refine, max_steps):
     fit = functools.partial(_circle_fit, refine=refine, max_steps=max_steps)
     params, ok, it, used = _robust_fit(fit, _circle_resid, pts, valid, robust=robust, k=k, rounds=rounds,
                                        min_pts=3)
-    return _finish(params, ok, _circle_resid, pts, used, it, ("row", "col", "radius"), "circle")
+    f = _finish(params, ok, _circle_resid, pts, used, it, ("row", "col", "radius"), "circle")
+    bad = _unsupported(f, _circle_resid, pts, used, f.params[2], (0, 1, 2), max_rel_rms, max_rel_se)
+    return poison(f, bad, who="fit_circle")
 
 
 @register(family="fit2d", takes=Contour, gives=Fit, knobs={"k": _K_KNOB}, differentiable=False,
@@ -317,7 +371,7 @@ def _fit_circle_core(pts, valid, k, *, robust, rounds, refine, max_steps):
                 "BIT 34, 1994",
                 "K. Levenberg 1944; D. W. Marquardt 1963 (via optimistix.LevenbergMarquardt)"])
 def fit_circle(c: Contour, /, *, robust: bool = True, k: float = 3.0, rounds: int = 3, refine: bool = True,
-               max_steps: int = 100) -> Fit:
+               max_steps: int = 100, max_rel_rms: float = 0.15, max_rel_se: float = 0.1) -> Fit:
     """Circle fit: algebraic (Kasa) start, then geometric least squares by Levenberg-Marquardt.
 
     The Kasa fit solves the linear least squares of ``u^2 + v^2 + D u + E v + F
@@ -334,11 +388,19 @@ def fit_circle(c: Contour, /, *, robust: bool = True, k: float = 3.0, rounds: in
       refine: run the geometric refinement (``False``: Kasa only, which is
         biased towards small circles on short arcs).
       max_steps: static cap on LM steps; hitting it gives ``converged=False``.
+      max_rel_rms: the fit is refused when its rms exceeds this fraction of the
+        radius (default 0.15; a random scatter gives 0.29-0.52, a circle with 10 %
+        radial noise 0.10). ``inf`` disables the test.
+      max_rel_se: the fit is refused when the standard error of the centre or the
+        radius exceeds this fraction of the radius (default 0.1; a 90-degree arc
+        with 5 % noise gives 0.06, a 45-degree arc with 5 % noise 0.23, two tight
+        clusters 0.12). ``inf`` disables the test.
 
     Returns:
       ``Fit(kind="circle")`` with ``params = (row, col, radius)`` in pixels.
-      ``converged=False`` with NaN for fewer than 3 points, collinear points
-      or a failed solve.
+      ``converged=False`` with NaN for fewer than 3 points, collinear points,
+      a failed solve, or points that do not support a circle (module notes,
+      "Support").
 
     Accuracy (tested): 200 points on a circle of radius 15.2 with radial
     Gaussian noise ``sigma`` give a radius error within ``4 sigma / sqrt(n)``
@@ -359,8 +421,9 @@ def fit_circle(c: Contour, /, *, robust: bool = True, k: float = 3.0, rounds: in
     """
     op = "fit_circle"
     _check(op, k, rounds, max_steps)
-    return _fit_circle_core(c.points, c.valid, k, robust=bool(robust), rounds=int(rounds), refine=bool(refine),
-                            max_steps=int(max_steps))
+    _check_support(op, max_rel_rms, max_rel_se)
+    return _fit_circle_core(c.points, c.valid, k, max_rel_rms, max_rel_se, robust=bool(robust), rounds=int(rounds),
+                            refine=bool(refine), max_steps=int(max_steps))
 
 
 # ---------------------------------------------------------------------------
@@ -528,14 +591,17 @@ def _ellipse_resid(params, pts):
 
 
 @functools.partial(jax.jit, static_argnames=("robust", "rounds", "refine", "max_steps"))
-def _fit_ellipse_core(pts, valid, k, *, robust, rounds, refine, max_steps):
+def _fit_ellipse_core(pts, valid, k, max_rel_rms, max_rel_se, *, robust, rounds, refine, max_steps):
     fit = functools.partial(_ellipse_fit, refine=refine, max_steps=max_steps)
     params, ok, it, used = _robust_fit(fit, _ellipse_resid, pts, valid, robust=robust, k=k, rounds=rounds,
                                        min_pts=5)
     f = _finish(params, ok, _ellipse_resid, pts, used, it, ("row", "col", "a", "b", "angle_deg"), "ellipse")
     # an ellipse narrower than its own misfit is not resolved by the points (a straight noisy
     # contour gave a converged 8.98 x 0.054 ellipse with rms 1.02 px): fail closed
-    return poison(f, ~(jnp.minimum(f.params[2], f.params[3]) > 2 * f.rms), who="fit_ellipse")
+    f = poison(f, ~(jnp.minimum(f.params[2], f.params[3]) > 2 * f.rms), who="fit_ellipse")
+    bad = _unsupported(f, _ellipse_resid, pts, used, jnp.minimum(f.params[2], f.params[3]), (0, 1, 2, 3),
+                       max_rel_rms, max_rel_se)
+    return poison(f, bad, who="fit_ellipse")
 
 
 @register(family="fit2d", takes=Contour, gives=Fit, knobs={"k": _K_KNOB}, differentiable=False,
@@ -546,7 +612,7 @@ def _fit_ellipse_core(pts, valid, k, *, robust, rounds, refine, max_steps):
                 "S. J. Ahn, W. Rauh, H.-J. Warnecke, Least-squares orthogonal distances fitting of "
                 "circle, sphere, ellipse, hyperbola, and parabola, Pattern Recognition 34, 2001"])
 def fit_ellipse(c: Contour, /, *, robust: bool = True, k: float = 3.0, rounds: int = 3, refine: bool = True,
-                max_steps: int = 100) -> Fit:
+                max_steps: int = 100, max_rel_rms: float = 0.15, max_rel_se: float = 0.1) -> Fit:
     """Ellipse fit: Fitzgibbon-Pilu-Fisher direct least squares, then orthogonal-distance refinement.
 
     The direct fit minimises the algebraic error of the conic ``A u^2 + B uv +
@@ -568,6 +634,13 @@ def fit_ellipse(c: Contour, /, *, robust: bool = True, k: float = 3.0, rounds: i
       refine: run the geometric refinement (``False``: direct fit only, which
         is biased towards smaller, rounder ellipses under noise).
       max_steps: static cap on LM steps; hitting it gives ``converged=False``.
+      max_rel_rms: the fit is refused when its rms exceeds this fraction of the
+        minor semi-axis (default 0.15; a random scatter gives 0.3-0.4, an ellipse
+        with noise 10 % of its minor axis 0.09). ``inf`` disables the test.
+      max_rel_se: the fit is refused when the standard error of the centre or a
+        semi-axis exceeds this fraction of the minor semi-axis (default 0.1; a
+        half ellipse with noise 5 % of b gives 0.05, two clusters 0.15-0.19).
+        ``inf`` disables the test.
 
     Returns:
       ``Fit(kind="ellipse")`` with ``params = (row, col, a, b, angle_deg)``:
@@ -596,5 +669,6 @@ def fit_ellipse(c: Contour, /, *, robust: bool = True, k: float = 3.0, rounds: i
     """
     op = "fit_ellipse"
     _check(op, k, rounds, max_steps)
-    return _fit_ellipse_core(c.points, c.valid, k, robust=bool(robust), rounds=int(rounds), refine=bool(refine),
-                             max_steps=int(max_steps))
+    _check_support(op, max_rel_rms, max_rel_se)
+    return _fit_ellipse_core(c.points, c.valid, k, max_rel_rms, max_rel_se, robust=bool(robust), rounds=int(rounds),
+                             refine=bool(refine), max_steps=int(max_steps))
