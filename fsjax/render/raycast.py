@@ -154,7 +154,8 @@ def _basis(L):
 def _grid_occlusion(mesh, points, L, ignore_face, s_min, grid, capacity, pairs, batch, fn):
     """Any-hit of the parallel rays ``points + s * L`` through a grid binned along ``L``.
 
-    Returns ``occluded (N,)``, ``incomplete (N,)`` and ``overflow``.
+    Returns ``occluded (N,)``, ``incomplete (N,)``, ``overflow`` and the buffer sizes that
+    would have held everything: the fullest cell's count and the total (triangle, cell) pairs.
     """
     grid = check_static_int(fn, "grid", grid, lo=1)
     capacity = check_static_int(fn, "capacity", capacity, lo=1)
@@ -202,11 +203,31 @@ def _grid_occlusion(mesh, points, L, ignore_face, s_min, grid, capacity, pairs, 
 
     occ = jax.lax.map(one, (P, cid, ign, inside), batch_size=min(batch, N))  # (N,)
     lost = (count - kept)[cid] > 0
-    return occ, inside & lost, jnp.sum(count - kept).astype(jnp.int32)
+    return (occ, inside & lost, jnp.sum(count - kept).astype(jnp.int32), jnp.max(count).astype(jnp.int32),
+            jnp.sum(count).astype(jnp.int32))
+
+
+def _pow2(n: int) -> int:
+    return 1 << max(0, int(n - 1).bit_length())
+
+
+def _occlusion_grown(run, capacity, pairs, fn):
+    """Run ``run(capacity, pairs)``; when eager, with ``capacity`` / ``pairs`` left at their
+    defaults (``None``), re-run once with buffers sized from the measured need if anything was
+    dropped, so an eager answer is complete. A capacity the caller passes is kept and flagged;
+    under ``jit`` the buffers are static and overflow is flagged (``incomplete``, ``overflow``)."""
+    cap = 128 if capacity is None else check_static_int(fn, "capacity", capacity, lo=1)
+    out = run(cap, pairs)
+    ovf, need_cap, need_pairs = out[2], out[3], out[4]
+    if (capacity is None or pairs is None) and not isinstance(ovf, jax.core.Tracer) and int(ovf) > 0:
+        cap2 = max(cap, _pow2(int(need_cap))) if capacity is None else cap
+        pairs2 = pairs if pairs is not None else _pow2(int(need_pairs))
+        out = run(cap2, pairs2)
+    return out[:3]
 
 
 def occluded_parallel(mesh: Mesh, points, direction, *, ignore_face=None, s_min=None, grid: int = 64,
-                      capacity: int = 128, pairs: int | None = None, batch: int = 256) -> Occlusion:
+                      capacity: int | None = None, pairs: int | None = None, batch: int = 256) -> Occlusion:
     """Whether the ray from each point along ``direction`` (towards a distant light) hits the mesh.
 
     All rays are parallel, so the mesh is projected along ``direction`` onto the plane spanned
@@ -221,9 +242,13 @@ def occluded_parallel(mesh: Mesh, points, direction, *, ignore_face=None, s_min=
       direction: ``(3,)`` direction towards the light; zero length is refused.
       ignore_face: optional ``(N,)`` int face id per point to skip (the face the point lies on).
       s_min: smallest accepted ray parameter (default ``1e-6`` x the mesh's bounding-box diagonal).
-      grid: static cells per side; capacity: static triangles per cell; pairs: static size of
-        the (triangle, cell) pair buffer (default ``min(grid^2 capacity, max(64 F, 4 grid^2))``; pairs beyond it
-        count as overflow); batch: static number of points tested together (memory).
+      grid: static cells per side; capacity: static triangles per cell (default 128); pairs:
+        static size of the (triangle, cell) pair buffer (default
+        ``min(grid^2 capacity, max(64 F, 4 grid^2))``; pairs beyond it count as overflow);
+        batch: static number of points tested together (memory). Left at their defaults in
+        an eager call, ``capacity`` and ``pairs`` are re-sized from the measured need when
+        anything was dropped, so the answer is complete; passed explicitly, or under
+        ``jit``, they are kept and overflow is flagged.
 
     Returns:
       :class:`Occlusion`.
@@ -236,8 +261,10 @@ def occluded_parallel(mesh: Mesh, points, direction, *, ignore_face=None, s_min=
         [True, False]
     """
     L = unit(jnp.asarray(direction, dtype=mesh.vertices.dtype), name="direction", fn="occluded_parallel")
-    occ, inc, ovf = _grid_occlusion(mesh, points, L, ignore_face, s_min, grid, capacity, pairs, batch,
-                                    "occluded_parallel")
+    def run(cap, prs):
+        return _grid_occlusion(mesh, points, L, ignore_face, s_min, grid, cap, prs, batch, "occluded_parallel")
+
+    occ, inc, ovf = _occlusion_grown(run, capacity, pairs, "occluded_parallel")
     return Occlusion(occluded=occ, incomplete=inc, overflow=ovf)
 
 
@@ -270,7 +297,7 @@ def sun_directions(direction, *, angular_diameter_deg=0.53, samples: int = 16) -
 
 
 def sun_visibility(mesh: Mesh, points, direction, *, angular_diameter_deg=0.53, samples: int = 16,
-                   ignore_face=None, s_min=None, grid: int = 64, capacity: int = 128, pairs: int | None = None,
+                   ignore_face=None, s_min=None, grid: int = 64, capacity: int | None = None, pairs: int | None = None,
                    batch: int = 256):
     """Fraction of the solar disc visible from each point: ``(visible (N,), incomplete (N,), overflow)``.
 
@@ -279,6 +306,8 @@ def sun_visibility(mesh: Mesh, points, direction, *, angular_diameter_deg=0.53, 
     ``angular_diameter_deg``, 0.53 deg for the Sun seen from Earth), giving hard shadows with
     penumbrae of the right width. ``incomplete`` flags points whose cell overflowed for some
     direction; ``overflow`` sums the dropped (triangle, cell) pairs over the directions.
+    ``capacity`` / ``pairs`` as in :func:`occluded_parallel` (re-sized when eager and left at
+    their defaults).
 
     Example:
         >>> v = jnp.asarray([[-1.0, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]])
@@ -290,11 +319,15 @@ def sun_visibility(mesh: Mesh, points, direction, *, angular_diameter_deg=0.53, 
     dirs = sun_directions(direction, angular_diameter_deg=angular_diameter_deg, samples=samples)
     dirs = dirs.astype(mesh.vertices.dtype)
 
-    def one(d):
-        return _grid_occlusion(mesh, points, d, ignore_face, s_min, grid, capacity, pairs, batch, "sun_visibility")
-
     grid = check_static_int("sun_visibility", "grid", grid, lo=1)
-    capacity = check_static_int("sun_visibility", "capacity", capacity, lo=1)
-    occ, inc, ovf = jax.lax.map(one, dirs)
+
+    def run(cap, prs):
+        def one(d):
+            return _grid_occlusion(mesh, points, d, ignore_face, s_min, grid, cap, prs, batch, "sun_visibility")
+
+        occ, inc, ovf, need_cap, need_pairs = jax.lax.map(one, dirs)
+        return occ, inc, jnp.sum(ovf).astype(jnp.int32), jnp.max(need_cap), jnp.max(need_pairs)
+
+    occ, inc, ovf = _occlusion_grown(run, capacity, pairs, "sun_visibility")
     vis = 1.0 - jnp.mean(occ.astype(dirs.dtype), axis=0)
-    return vis, jnp.any(inc, axis=0), jnp.sum(ovf).astype(jnp.int32)
+    return vis, jnp.any(inc, axis=0), ovf

@@ -2,6 +2,7 @@
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -54,6 +55,37 @@ def test_occluded_parallel_matches_bruteforce_and_flags_overflow():
                               for di in dirs]).astype(float), axis=0)
     vis, _, ovf = sun_visibility(m, P, d, angular_diameter_deg=8.0, samples=5, grid=32, capacity=64, s_min=1e-9)
     assert int(ovf) == 0 and bool(jnp.all(1.0 - per == vis))
+
+
+def test_default_capacity_grows_when_eager_and_is_flagged_under_jit():
+    """Issue 20 (capacities outside the registry): 300 small triangles stacked over one spot sit
+    in one grid cell, beyond the default 128 per cell. An eager call with the defaults re-sizes
+    its buffers and answers every ray exactly; under jit, or with a capacity the caller passes,
+    the overflow is flagged, never silent. (Before: the eager default dropped 172 triangles.)"""
+    rng = np.random.default_rng(4)
+    n = 300
+    base = np.array([[0.0, 0, 0], [0.05, 0, 0], [0, 0.05, 0]])
+    off = np.concatenate([rng.uniform(-0.02, 0.02, (n, 2)), rng.uniform(1.0, 2.0, (n, 1))], 1)
+    V = (base[None] + off[:, None]).reshape(-1, 3)
+    m = fsjax.Mesh(jnp.asarray(V), jnp.arange(3 * n, dtype=jnp.int32).reshape(n, 3))
+    P = jnp.asarray(np.concatenate([rng.uniform(-0.05, 0.08, (200, 2)), np.zeros((200, 1))], 1))
+    d = jnp.asarray([0.0, 0.0, 1.0])
+    ref = intersect(m, P, jnp.broadcast_to(d, P.shape), s_min=1e-9).hit
+    eager = occluded_parallel(m, P, d, s_min=1e-9)
+    assert int(eager.overflow) == 0 and not bool(jnp.any(eager.incomplete))
+    assert bool(jnp.all(eager.occluded == ref)) and 0 < int(ref.sum()) < 200
+    kept = occluded_parallel(m, P, d, s_min=1e-9, capacity=128)
+    assert int(kept.overflow) > 0 and bool(jnp.any(kept.incomplete))
+    traced = jax.jit(lambda pts: occluded_parallel(m, pts, d, s_min=1e-9))(P)
+    assert int(traced.overflow) > 0
+    wrong = traced.occluded != ref
+    assert bool(jnp.all(traced.incomplete[wrong]))
+    vis, inc, ovf = sun_visibility(m, P, d, samples=3, s_min=1e-9)
+    assert int(ovf) == 0 and not bool(jnp.any(inc))
+    dirs = sun_directions(d, samples=3)
+    per = jnp.mean(jnp.stack([intersect(m, P, jnp.broadcast_to(di, P.shape), s_min=1e-9).hit for di in dirs])
+                   .astype(float), axis=0)
+    assert bool(jnp.all(vis == 1.0 - per))
 
 
 def test_sun_penumbra_width():
