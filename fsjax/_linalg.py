@@ -241,7 +241,14 @@ class _TrustRegionInDtype(optx.ClassicalTrustRegion):
         return eqx.tree_at(lambda s: s.step_size, state, state.step_size.astype(dt))
 
 
-def levenberg_marquardt(rtol, atol, *, linear_solver=None):
+def _lm_progress(**kw):
+    """Progress line of a Levenberg-Marquardt step (optimistix's ``verbose`` callable; the
+    parameter vectors it also offers are left out)."""
+    jax.debug.print("  LM step {}: loss {} (last accepted {}), step size {}", kw["num_steps"][1],
+                    kw["loss_this_step"][1], kw["loss_last_accepted_step"][1], kw["step_size"][1])
+
+
+def levenberg_marquardt(rtol, atol, *, linear_solver=None, verbose=False):
     """``optimistix.LevenbergMarquardt`` that keeps the dtype of its parameters.
 
     Float32 data stays float32 whether or not x64 is enabled (the stock solver fails on
@@ -249,5 +256,7 @@ def levenberg_marquardt(rtol, atol, *, linear_solver=None):
     Levenberg-Marquardt fit of the library builds its solver here.
     """
     kw = {} if linear_solver is None else {"linear_solver": linear_solver}
+    if verbose:  # one line per step (loss, step size) from inside the compiled solve
+        kw["verbose"] = _lm_progress
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, **kw)
     return eqx.tree_at(lambda s: s.search, solver, _TrustRegionInDtype())

@@ -275,7 +275,7 @@ class Calibration(FitResult):
 
 
 def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, rtol: float = 1e-10,
-                     atol: float = 1e-10, fix_distortion: bool = False) -> Calibration:
+                     atol: float = 1e-10, fix_distortion: bool = False, verbose: bool = False) -> Calibration:
     """Calibrate a camera from N views of a planar board (Zhang init + optimistix LM).
 
     Args:
@@ -286,6 +286,8 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
       max_steps: LM step cap (``converged=False`` if reached).
       rtol, atol: optimistix LM tolerances.
       fix_distortion: keep ``dist = 0`` (pinhole-only calibration).
+      verbose: print what it is doing: the problem size, the closed-form (Zhang) start, one
+        line per Levenberg-Marquardt step from inside the compiled solve, and the result.
 
     Returns:
       :class:`Calibration`.
@@ -317,8 +319,13 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
         raise ValueError("calibrate_camera: argument 'image_uv' must be finite, got non-finite image points "
                          "(drop views that failed)")
     width, height = int(image_size[0]), int(image_size[1])
-    K0, rv0, tv0 = zhang_init(board[:, :2], uv, (width, height))
     n = uv.shape[0]
+    if verbose:
+        print(f"calibrate_camera: {n} views x {board.shape[0]} points; closed-form start (Zhang)", flush=True)
+    K0, rv0, tv0 = zhang_init(board[:, :2], uv, (width, height))
+    if verbose:
+        print(f"calibrate_camera: start fx {K0[0, 0]:.2f} fy {K0[1, 1]:.2f} cx {K0[0, 2]:.2f} cy {K0[1, 2]:.2f}; "
+              f"Levenberg-Marquardt over {9 + 6 * n} parameters (the first call compiles)", flush=True)
     s = float(width)
     scale = np.array([s, s, s, s, 1, 1, 1, 1, 1.0])
     y0 = np.concatenate([[K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2], 0, 0, 0, 0, 0] / scale,
@@ -331,12 +338,15 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
     args = (jnp.asarray(board, dt), jnp.asarray(uv, dt), scale_j, (width, height))
     keep = np.r_[dmask > 0, np.ones(6 * n, bool)]
     y, nsteps, ok, r, sd_full = _solve_and_std(jnp.asarray(y0, dt), args, max_steps, rtol, atol,
-                                               tuple(np.nonzero(keep)[0].tolist()))
+                                               tuple(np.nonzero(keep)[0].tolist()), bool(verbose))
     sd_full = sd_full.at[:9].multiply(jnp.asarray(scale, dt))
     intr, rv, tv = _unpack(y, scale_j, n)
     d2 = jnp.sum(r.reshape(n, -1, 2) ** 2, axis=-1)
     K = jnp.asarray([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]], dt)
     K = K.at[0, 0].set(intr[0]).at[1, 1].set(intr[1]).at[0, 2].set(intr[2]).at[1, 2].set(intr[3])
+    if verbose:
+        print(f"calibrate_camera: {int(nsteps)} steps, converged {bool(ok)}, "
+              f"rms {float(jnp.sqrt(jnp.mean(d2))):.4f} px", flush=True)
     return Calibration(
         K=K, dist=intr[4:9], rvecs=rv, tvecs=tv, rms_px=jnp.sqrt(jnp.mean(d2)),
         per_view_rms_px=jnp.sqrt(jnp.mean(d2, axis=1)), std=sd_full[:9], pose_std=sd_full[9:].reshape(n, 6),
@@ -346,8 +356,8 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
 
 
 @eqx.filter_jit
-def _solve_and_std(y0, args, max_steps, rtol, atol, keep):
-    sol = _solve(y0, args, max_steps, rtol, atol)
+def _solve_and_std(y0, args, max_steps, rtol, atol, keep, verbose=False):
+    sol = _solve(y0, args, max_steps, rtol, atol, verbose)
     y = sol.value
     r = _residuals(y, args)
     keep = jnp.asarray(keep)
@@ -361,6 +371,6 @@ def _solve_and_std(y0, args, max_steps, rtol, atol, keep):
 
 
 @eqx.filter_jit
-def _solve(y0, args, max_steps, rtol, atol):
-    solver = levenberg_marquardt(rtol, atol)
+def _solve(y0, args, max_steps, rtol, atol, verbose=False):
+    solver = levenberg_marquardt(rtol, atol, verbose=verbose)
     return optx.least_squares(_residuals, solver, y0, args, max_steps=max_steps, throw=False)

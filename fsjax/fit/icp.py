@@ -297,10 +297,15 @@ def _tolerance_floor(dtype):
     return 64 * float(jnp.finfo(dtype).eps)
 
 
+def _progress_line(it, n_ok, rms, step_deg, exact):
+    print(f"icp: iteration {int(it)}: {int(n_ok)} pairs, rms {float(rms):.6g}, rotation step "
+          f"{float(step_deg):.3g} deg{'' if bool(exact) else ' (approximate neighbours)'}", flush=True)
+
+
 @functools.partial(jax.jit, static_argnames=("method", "max_iterations", "inner_steps", "normal_k", "cov_k",
-                                              "has_normals"))
+                                              "has_normals", "verbose"))
 def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist, min_inlier, rot_tol, trans_tol,
-              *, method, max_iterations, inner_steps, normal_k, cov_k, has_normals):
+              *, method, max_iterations, inner_steps, normal_k, cov_k, has_normals, verbose=False):
     dtype = src.dtype
     min_pts = 3 if method == "point_to_point" else 6
     finite = (jnp.all(jnp.where(sv[:, None], jnp.isfinite(src), True))
@@ -416,6 +421,11 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         p, j, d2, ok = correspond(r, t, ~exact & ~stop)
         r2, t2, small, bad2, n2 = step(r, t, p, j, ok)
         upd = ~stop & (bad2 == OK)
+        if verbose:  # static: no cost unless asked; one host line per iteration
+            n_pairs = jnp.sum(ok)
+            rms = jnp.sqrt(jnp.sum(jnp.where(ok, d2, 0.0)) / jnp.maximum(n_pairs, 1)) * scale
+            jax.lax.cond(stop, lambda: None, lambda: jax.debug.callback(
+                _progress_line, it, n_pairs, rms, rotation_angle_deg(r2 @ r.T), ~(~exact & ~stop)))
         return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
                 jnp.where(stop, done, small & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
                 jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2, ok, stop, exact | small)
@@ -455,6 +465,7 @@ def icp(
     inner_steps: int = 2,
     normal_k: int = 10,
     cov_k: int = 20,
+    verbose: bool = False,
 ) -> ICPResult:
     """Register ``source`` to ``target`` by ICP (point-to-point, point-to-plane or GICP; trimmed).
 
@@ -482,6 +493,8 @@ def icp(
         inner_steps: Gauss-Newton steps per outer iteration (point-to-plane, GICP; static).
         normal_k: neighbours for target normals (static).
         cov_k: neighbours for GICP covariances (static).
+        verbose: print one progress line per iteration (pairs, rms in cloud units, rotation
+            step) from inside the compiled loop (``jax.debug.callback``; static; default off).
 
     Returns:
         :class:`ICPResult`.
@@ -523,7 +536,7 @@ def icp(
                      jnp.asarray(min_inlier_fraction, dtype), jnp.asarray(rot_tol, dtype),
                      jnp.asarray(trans_tol, dtype), method=method, max_iterations=int(max_iterations),
                      inner_steps=int(inner_steps), normal_k=int(normal_k), cov_k=int(cov_k),
-                     has_normals=has_normals)
+                     has_normals=has_normals, verbose=bool(verbose))
 
 
 # ---------------------------------------------------------------------------
