@@ -2,13 +2,17 @@
 
 Run: python tools/recheck_issue20.py (prints one line per item; see docs/fail_closed.md)."""
 import time
+
+import jax
+import jax.numpy as jnp
 import numpy as np
-import jax, jax.numpy as jnp
-assert not jax.config.jax_enable_x64
+
 import fsjax
+from fsjax.data.chessboard import chessboard_images
 from fsjax.fit import icp
 from fsjax.fit.chessboard import find_chessboard
-from fsjax.data.chessboard import chessboard_images
+
+assert not jax.config.jax_enable_x64, "run with JAX's default float32 (x64 off)"
 
 out = {}
 P = jnp.asarray(fsjax.data.mesh_arrays("bunny")[0][::36], jnp.float32)
