@@ -18,7 +18,8 @@ ratio.
 
 Run ``python benchmarks/bench_splat.py`` (``--quick``: 1k and 10k only, no 512 px frame;
 ``--json PATH`` to save the rows; ``--before REV --counts 10000,50000``: render + gradient of
-the renderer at git revision ``REV`` beside the current one, in one process; ``--chart``).
+the renderer at git revision ``REV`` beside the current one, in one process; ``--tiles 16,8``:
+training step and render + gradient (distortion off) at each tile size, in one process; ``--chart``).
 """
 
 from __future__ import annotations
@@ -120,7 +121,8 @@ def _module_at(rev: str):
 
     src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:fsjax/render/splat.py"], check=True,
                          capture_output=True, text=True).stdout
-    src = src.replace("from ..types import", "from fsjax.types import").replace(
+    src = src.replace("from .._checks import", "from fsjax._checks import").replace(
+        "from ..types import", "from fsjax.types import").replace(
         "from .camera import", "from fsjax.render.camera import")
     mod = types.ModuleType("splat_before")
     sys.modules["splat_before"] = mod  # dataclasses (equinox modules) look their module up
@@ -179,6 +181,58 @@ def before_after(rev: str, counts, repeats: int):
     return rows
 
 
+def step_tiles(tiles, counts, steps: int, repeats: int):
+    """Training step and render + gradient (``distortion=False``, the training path) at several tile
+    sizes, in one process: ``train_splats(tile_size=T)`` alternating over ``tiles`` (twice each), then
+    the render + gradient calls in interleaved repeats, with the gradients' max |diff| to the first
+    tile size (tiling is exact, so only rounding differs)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import fsjax
+    from fsjax.fit import init_from_mesh, mesh_views, train_splats
+    from fsjax.render import count_splat_pairs, render_splats
+    from fsjax.render.splat import _bucket
+
+    data = mesh_views(fsjax.data.spot(), n_views=12, width=128, height=128, holdout_every=6)
+    rows = []
+    for n in counts:
+        row = {"splats": n, "tiles": list(tiles), "load_before": os.getloadavg()[0]}
+        for _rep in range(2):
+            for t in tiles:
+                res = train_splats(jax.random.key(0), data, n_init=n, max_splats=n, iterations=steps,
+                                   densify_from=10**9, progress=False, tile_size=t)
+                row.setdefault(f"tile {t} step_s", []).append(res.step_seconds)
+                row.setdefault(f"tile {t} step_cpu_s", []).append(res.step_cpu_seconds)
+                row.setdefault(f"tile {t} compile_cpu_s", []).append(res.compile_cpu_seconds)
+                row[f"tile {t} overflow"] = int(np.max(res.overflow))
+                row[f"tile {t} pairs"] = int(np.max(res.pairs))
+                row[f"tile {t} final_loss"] = float(res.loss[-1])
+        g = init_from_mesh(jax.random.key(0), data, n, n)
+        cam = _cam(data, int(data.train[0]), jnp.float32)
+
+        def grad_of(t, cam=cam, g=g):
+            B = _bucket(count_splat_pairs(g, cam, tile_size=t))
+            return eqx.filter_jit(eqx.filter_grad(
+                lambda gs: jnp.sum(render_splats(gs, cam, tile_size=t, max_pairs=B, distortion=False).color)))
+
+        fns = {t: grad_of(t) for t in tiles}
+        grads = {t: jax.block_until_ready(f(g)) for t, f in fns.items()}
+        ref = grads[tiles[0]]
+        for t in tiles[1:]:
+            row[f"tile {t} grad rel maxdiff"] = max(
+                float(jnp.max(jnp.abs(getattr(grads[t], f) - getattr(ref, f)))) / float(jnp.max(jnp.abs(getattr(ref, f))))
+                for f in ("means", "log_scales", "opacity_logits", "colors"))
+        tm = time_round_robin({f"tile {t} render+grad": (lambda f=f, g=g: jax.block_until_ready(f(g)))
+                               for t, f in fns.items()}, repeats=repeats, warmup=0)
+        for k, t in tm.items():
+            row[f"{k}_s"] = t.median
+        row["load_after"] = os.getloadavg()[0]
+        print(row, flush=True)
+        rows.append(row)
+    return rows
+
 def chart():
     """docs/figures/bench_render_scaling.png: time vs splat count and vs face count (saved JSON)."""
     import matplotlib
@@ -220,10 +274,19 @@ def main():
     ap.add_argument("--json", default=str(ROOT / "benchmarks" / "results" / "splat.json"))
     ap.add_argument("--before", default=None, help="git revision of the renderer to compare against "
                     "(render + gradient only), e.g. 1fb1c3a")
+    ap.add_argument("--tiles", default=None, help="tile sizes to compare the training step and render + "
+                    "gradient at, in one process, e.g. 16,8")
     ap.add_argument("--chart", action="store_true", help="only draw the chart from the saved JSON files")
     a = ap.parse_args()
     if a.chart:
         chart()
+        return
+    if a.tiles:
+        load0 = load_average()
+        rows = step_tiles([int(x) for x in a.tiles.split(",")], [int(x) for x in a.counts.split(",")], a.steps,
+                          a.repeats)
+        out = {"load_before": load0, "load_after": load_average(), "rows": rows}
+        Path(str(ROOT / "benchmarks" / "results" / "splat_tiles.json")).write_text(json.dumps(out, indent=1))
         return
     if a.before:
         rows = before_after(a.before, [int(x) for x in a.counts.split(",")], a.repeats)

@@ -12,7 +12,7 @@ Each stage is jitted on its own: first-call time (tracing + compile + one run), 
 time of that first call (compilation is single-threaded, so this is close to what an idle machine
 would take), and the median of ``--repeats`` further calls. Stages are timed one after the other,
 so on a shared machine compare within one run. Run ``python benchmarks/profile_render.py``
-(``--splats N``, ``--faces N``, ``--only splat|raster``).
+(``--splats N``, ``--tile T`` (splat tile px, default 16), ``--faces N``, ``--only splat|raster``).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def _stage(name, f, *args, repeats=5):
     print(f"| {name} | {first:.2f} | {cpu:.2f} | {1e3 * np.median(ts):.1f} |", flush=True)
 
 
-def splat(n: int, repeats: int):
+def splat(n: int, repeats: int, tile: int = 16):
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -58,11 +58,12 @@ def splat(n: int, repeats: int):
     v = int(data.train[0])
     cam = jax.tree_util.tree_map(lambda a: a[v].astype(jnp.float32) if a.dtype.kind == "f" else a[v], data.cameras)
     img = data.images[v].astype(jnp.float32)
-    B = _bucket(count_splat_pairs(g, cam))
-    kw = {"max_pairs": B}
+    B = _bucket(count_splat_pairs(g, cam, tile_size=tile))
+    kw = {"max_pairs": B, "tile_size": tile}
     if "distortion" in render_splats.__code__.co_varnames:
         kw["distortion"] = False
-    print(f"\nsplats {n}, 128 x 128, pairs {count_splat_pairs(g, cam)} (buffer {B}), load {os.getloadavg()[0]:.1f}")
+    print(f"\nsplats {n}, 128 x 128, tile {tile} px, pairs {count_splat_pairs(g, cam, tile_size=tile)} (buffer {B}), "
+          f"load {os.getloadavg()[0]:.1f}")
     print("| stage | first call s | first call CPU s | median ms |\n|---|---|---|---|")
     _stage("projection", jax.jit(lambda g: _project(g, cam, 0.01, 0.3, 1 / 255, 3.0, None).uv), g, repeats=repeats)
     _stage("render (forward)", eqx.filter_jit(lambda g: render_splats(g, cam, **kw).color), g, repeats=repeats)
@@ -131,10 +132,11 @@ def main():
     ap.add_argument("--splats", type=int, default=10000)
     ap.add_argument("--faces", type=int, default=50000)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--tile", type=int, default=16, help="splat tile size (train_splats uses 8)")
     ap.add_argument("--only", choices=("splat", "raster"), default=None)
     a = ap.parse_args()
     if a.only in (None, "splat"):
-        splat(a.splats, a.repeats)
+        splat(a.splats, a.repeats, a.tile)
     if a.only in (None, "raster"):
         raster(a.faces, a.repeats)
 

@@ -332,3 +332,85 @@ def test_default_is_exact_when_a_tile_holds_more_than_the_old_capacity():
     d = max(float(jnp.max(jnp.abs(getattr(a, f) - getattr(b, f)))) for f in FIELDS)
     print(f"one tile, {int(a.max_tile_count)} splats on it: overflow {int(a.overflow)}, max |diff| vs dense {d:.1e}")
     assert int(a.max_tile_count) > 256 and int(a.overflow) == 0 and d < 1e-12
+
+
+def _plain_loss(renderer, cam_w=40, cam_h=30):
+    # every output the distortion-free training path produces: colour, alpha, depth, median depth
+    rng = np.random.default_rng(7)
+    wc = jnp.asarray(rng.uniform(0, 1, (cam_h, cam_w, 3)))
+    wa, wd, wm = (jnp.asarray(rng.uniform(0, 1, (cam_h, cam_w))) for _ in range(3))
+
+    def loss(g, cam):
+        out = renderer(g, cam)
+        return (jnp.sum(wc * out.color) + jnp.sum(wa * out.alpha) + 0.1 * jnp.sum(wd * out.depth)
+                + 0.1 * jnp.sum(wm * out.median_depth))
+    return loss
+
+
+def _plain_tiled(g, cam):
+    # distortion=False is the training path (the other gradient tests use distortion=True); chunk=4
+    # makes several chunks per tile, so the state handed from chunk to chunk (and its cotangent) is
+    # exercised
+    return S.render_splats(g, cam, tile_size=8, max_pairs=2048, chunk=4, distortion=False)
+
+
+def _opaque_scene():
+    # a dense stack of nearly opaque splats: many pixels terminate early (T < t_min) inside a chunk
+    g = _scene(n=40, seed=11, spread=0.25)
+    return Gaussians(g.means, g.log_scales + 0.7, g.quats, jnp.abs(g.opacity_logits) + 3.0, g.colors)
+
+
+@pytest.mark.parametrize("scene", ["mixed", "opaque"])
+def test_distortion_off_gradients_match_dense(scene):
+    g, cam = (_scene(n=24), _cam()) if scene == "mixed" else (_opaque_scene(), _cam())
+    out = _plain_tiled(g, cam)
+    assert int(out.overflow) == 0
+    if scene == "opaque":  # termination really happens, and more than one chunk per tile is used
+        assert float(jnp.max(out.alpha)) > 1 - 2e-4 and int(out.max_tile_count) > 8
+    lt, ld = _plain_loss(_plain_tiled), _plain_loss(S.render_splats_dense)
+    gt = eqx.filter_grad(lambda gc: lt(*gc))((g, cam))
+    gd = eqx.filter_grad(lambda gc: ld(*gc))((g, cam))
+    worst = 0.0
+    pairs = [(gt[0], gd[0], n) for n in ("means", "log_scales", "quats", "opacity_logits", "colors")]
+    pairs += [(gt[1], gd[1], n) for n in ("K", "R", "t")]
+    for a, b, name in pairs:
+        x, y = getattr(a, name), getattr(b, name)
+        scale = float(jnp.max(jnp.abs(y)))
+        assert scale > 0, name
+        worst = max(worst, float(jnp.max(jnp.abs(x - y))) / scale)
+    print(f"splat distortion-off, chunk 4 ({scene}) vs dense gradients: max relative |diff| = {worst:.1e}")
+    assert worst < 1e-12
+
+
+def test_distortion_off_fd_gradients():
+    g, cam = _opaque_scene(), _cam()
+    loss = _plain_loss(_plain_tiled)
+    grads = eqx.filter_grad(loss)(g, cam)
+    rng = np.random.default_rng(2)
+    eps = 1e-6
+    for name in ("means", "log_scales", "quats", "opacity_logits", "colors"):
+        d = jnp.asarray(rng.normal(size=getattr(g, name).shape))
+        an = float(jnp.sum(getattr(grads, name) * d))
+        fd = (float(loss(eqx_replace(g, name, getattr(g, name) + eps * d), cam))
+              - float(loss(eqx_replace(g, name, getattr(g, name) - eps * d), cam))) / (2 * eps)
+        print(f"splat distortion-off FD check {name}: analytic {an:.6e} fd {fd:.6e}")
+        assert abs(fd) > 1e-3, name
+        assert abs(an - fd) < 1e-4 * abs(fd), name
+
+
+def test_distortion_off_float32_gradients():
+    g, cam = _scene(n=24), _cam()
+    f32 = lambda t: jax.tree_util.tree_map(  # noqa: E731
+        lambda a: a.astype(jnp.float32) if hasattr(a, "dtype") and a.dtype == jnp.float64 else a, t)
+    g32 = f32(g)
+    cam32 = Camera(cam.K.astype(jnp.float32), width=40, height=30, R=cam.R.astype(jnp.float32),
+                   t=cam.t.astype(jnp.float32))
+    loss = _plain_loss(_plain_tiled)
+    a = eqx.filter_grad(loss)(g32, cam32)
+    b = eqx.filter_grad(_plain_loss(S.render_splats_dense))(g, cam)
+    for name in ("means", "log_scales", "opacity_logits", "colors"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == jnp.float32
+        rel = float(jnp.max(jnp.abs(x - y))) / float(jnp.max(jnp.abs(y)))
+        print(f"splat distortion-off float32 vs float64 dense gradient ({name}): max relative |diff| = {rel:.1e}")
+        assert rel < 1e-3, name
