@@ -246,7 +246,8 @@ def poison(out: Any, bad: Any, *, who: str) -> Any:
 
     Where ``bad`` holds, every floating leaf of the sort ``out`` becomes NaN and its
     validity flags (``valid``, ``converged``, ``found``, mesh ``vertex_valid`` /
-    ``face_valid``) become False, so the result cannot pass for a measurement. A sort with
+    ``face_valid``) become False, so the result cannot pass for a measurement; a record's
+    ``reason`` that said ``ok`` becomes ``invalid_input``. A sort with
     no floating leaf (``Region``, ``Labels``) cannot carry NaN: there the call raises at run
     time through ``equinox.error_if`` (under ``vmap`` when any member is bad).
     """
@@ -272,6 +273,14 @@ def poison(out: Any, bad: Any, *, who: str) -> Any:
         v = getattr(out, f, None)
         if v is not None and hasattr(v, "dtype") and v.dtype == jnp.bool_:
             out = eqx.tree_at(lambda o, f=f: getattr(o, f), out, jnp.where(bad, False, v))
+    r = getattr(out, "reason", None)
+    if r is not None and hasattr(r, "dtype") and jnp.issubdtype(r.dtype, jnp.integer):
+        # a record that says why it failed: a result that was ok is now invalid input (the
+        # caller's value or a truncated input); an earlier, more specific reason is kept
+        from .types.results import reason_code
+
+        out = eqx.tree_at(lambda o: o.reason, out,
+                          jnp.where(bad & (r == reason_code("ok")), reason_code("invalid_input"), r).astype(r.dtype))
     return out
 
 

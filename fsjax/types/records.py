@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from ._base import Sort, _as_array
-from .results import reason_message
+from .results import reason_code, reason_message
 
 __all__ = ["Feature", "Match", "Match3D", "RegionProps", "NamedParams", "Fit", "Edges1D", "MeshTopology"]
 
@@ -203,7 +203,11 @@ class Fit(NamedParams, Sort):
     ...), ``names`` (static) its parameters, in units stated by the op.
     ``rms`` is the residual RMS, ``iterations`` the solver steps, ``converged``
     False (with NaN parameters) when the fit failed or was degenerate, and
-    ``n_used`` the number of points that entered the final fit.
+    ``n_used`` the number of points that entered the final fit. ``reason`` (int32)
+    says why not, in the codes of :class:`fsjax.types.RESULTS` shared with every fit
+    (``too_few``, ``degenerate``, ``max_iterations``, ``invalid_input`` for a truncated
+    input or an out-of-range traced knob, ``unsupported_model`` for points that do not
+    support a circle / ellipse); ``message`` gives its text (docs/results.md).
     """
 
     params: Float[Array, "*batch P"]
@@ -211,12 +215,13 @@ class Fit(NamedParams, Sort):
     iterations: Int[Array, "*batch"]
     converged: Bool[Array, "*batch"]
     n_used: Int[Array, "*batch"]
+    reason: Int[Array, "*batch"]
     kind: str = eqx.field(static=True, default="")
     names: tuple[str, ...] = eqx.field(static=True, default=())
     _float_fields = ()
 
     def __init__(self, params: Any, names: tuple[str, ...], kind: str, rms: Any, converged: Any,
-                 iterations: Any = 0, n_used: Any = 0):
+                 iterations: Any = 0, n_used: Any = 0, reason: Any = None):
         self.params = _as_array(params, sort="Fit", field="params", kind="float", min_ndim=1)
         self.names = tuple(str(n) for n in names)
         if len(self.names) != self.params.shape[-1]:
@@ -226,6 +231,14 @@ class Fit(NamedParams, Sort):
         self.converged = jnp.asarray(converged, dtype=bool)
         self.iterations = jnp.asarray(iterations, dtype=jnp.int32)
         self.n_used = jnp.asarray(n_used, dtype=jnp.int32)
+        if reason is None:  # no cause given: ok, or the generic failure
+            reason = jnp.where(self.converged, reason_code("ok"), reason_code("degenerate"))
+        self.reason = jnp.broadcast_to(jnp.asarray(reason, dtype=jnp.int32), self.converged.shape)
+
+    @property
+    def message(self) -> Any:
+        """The text of ``reason`` (``str``; an array of ``str`` for a batched record)."""
+        return reason_message(self.reason)
 
     @property
     def batch_shape(self) -> tuple[int, ...]:

@@ -347,3 +347,38 @@ def test_circle_and_ellipse_refuse_points_that_do_not_support_them(dtype):
         fsjax.ops.fit_circle(fsjax.Contour(jnp.asarray(good_circle["full, 1 %"])), max_rel_rms=0.0)
     with pytest.raises(ValueError, match="fit_ellipse.*max_rel_se"):
         fsjax.ops.fit_ellipse(fsjax.Contour(jnp.asarray(good_circle["full, 1 %"])), max_rel_se=float("nan"))
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_fit_says_no_circle_no_ellipse_with_a_reason(dtype):
+    """Issue 20: a refused circle / ellipse said only ``converged=False`` (a straight noisy line
+    gave the circle "did not converge" at r 207 for a 22 px extent). The 2-D ``Fit`` now carries
+    ``reason`` in the codes every fit shares: ``unsupported_model`` ("no circle" / "no ellipse")
+    for uniform scatter in a box, a straight line and two separate clusters, ``ok`` for noisy
+    circles (3 % of r, full and a 90-degree arc) and ellipses, ``too_few`` for too few points,
+    ``invalid_input`` for a truncated contour; the same under ``jit``."""
+    from fsjax.types import reason_code
+
+    rng = np.random.default_rng(11)
+    t = rng.uniform(0, 40, 60)
+    no_model = {"scatter in a box": rng.uniform(0, 30, (60, 2)),
+                "straight line": np.stack([5 + 0.5 * t, 3 + t], -1) + 0.3 * rng.standard_normal((60, 2)),
+                "two clusters": np.concatenate([rng.normal([10, 10], 1.0, (30, 2)), rng.normal([30, 25], 1.0, (30, 2))])}
+    unsupported, ok, too_few, invalid = (reason_code(n) for n in ("unsupported_model", "ok", "too_few", "invalid_input"))
+    jfit = {op: jax.jit(lambda p, op=op: getattr(fsjax.ops, op)(fsjax.Contour(p))) for op in ("fit_circle", "fit_ellipse")}
+    for name, p in no_model.items():
+        for op in ("fit_circle", "fit_ellipse"):
+            for f in (getattr(fsjax.ops, op)(fsjax.Contour(jnp.asarray(p.astype(dtype)))), jfit[op](jnp.asarray(p.astype(dtype)))):
+                assert not bool(f.converged) and int(f.reason) == unsupported, (op, name, int(f.reason))
+                assert "unsupported model" in f.message and bool(jnp.all(jnp.isnan(f.params)))
+    good = {"fit_circle": [_arc(80, 20, 0.6, 2 * np.pi, 1), _arc(60, 20, 0.6, np.pi / 2, 2)],
+            "fit_ellipse": [_ell(80, 20, 10, 0.3, 2 * np.pi, 3), _ell(80, 20, 10, 0.3, np.pi, 4)]}
+    for op, cases in good.items():
+        for p in cases:
+            f = getattr(fsjax.ops, op)(fsjax.Contour(jnp.asarray(p.astype(dtype))))
+            assert bool(f.converged) and int(f.reason) == ok and f.message == "ok", (op, int(f.reason))
+    f = fsjax.ops.fit_circle(fsjax.Contour(jnp.asarray(_arc(2, 20, 0.0, np.pi, 5).astype(dtype))))
+    assert int(f.reason) == too_few and not bool(f.converged)
+    p = jnp.asarray(_arc(80, 20, 0.6, 2 * np.pi, 1).astype(dtype))
+    f = fsjax.ops.fit_circle(fsjax.Contour(p, truncated=jnp.asarray(True)))
+    assert int(f.reason) == invalid and not bool(f.converged)

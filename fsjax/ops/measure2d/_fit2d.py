@@ -23,7 +23,7 @@ Conventions (stated once for the family):
   for a line, a conic that is not an ellipse, or a solver that did not
   converge give ``converged=False`` and NaN parameters and ``rms``.
 * Support (circle and ellipse): a converged fit is still refused (``converged=False``,
-  NaN) when the points do not support the model, by two tests stated against the model's
+  NaN, ``reason`` ``unsupported_model``: "no circle" / "no ellipse") when the points do not support the model, by two tests stated against the model's
   size ``L`` (radius; minor semi-axis): the misfit ``rms <= max_rel_rms * L`` (default 0.15:
   a random scatter fits a circle with ``rms/r`` 0.29-0.52), and the determination: the
   standard errors of the centre and the radius / semi-axes from the Gauss-Newton covariance
@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
@@ -59,6 +60,7 @@ from ..._checks import check_positive, check_static_int
 from ..._linalg import levenberg_marquardt
 from ...registry import LinKnob, poison, register
 from ...types import Contour, Fit, is_concrete
+from ...types.results import reason_code
 
 __all__ = ["fit_line", "fit_circle", "fit_ellipse"]
 
@@ -168,14 +170,37 @@ def _robust_fit(fit, resid, pts, valid, *, robust: bool, k, rounds: int, min_pts
     return params, ok, it, used
 
 
-def _finish(params, ok, resid_fn, pts, used, iterations, names, kind):
+def _finish(params, ok, resid_fn, pts, used, iterations, names, kind, *, valid, min_pts, max_steps=None,
+            curved=False):
     r = resid_fn(params, pts)
     n = jnp.sum(used)
     rms = _safe_sqrt(jnp.sum(jnp.where(used, r * r, 0.0)) / jnp.maximum(n, 1))
     ok = ok & jnp.all(jnp.isfinite(params)) & jnp.isfinite(rms)
     params = jnp.where(ok, params, jnp.nan)
     rms = jnp.where(ok, rms, jnp.nan)
-    return Fit(params, names, kind, rms, ok, iterations=iterations, n_used=n)
+    # why not, in the codes every fit shares (fsjax.types.RESULTS)
+    reason = jnp.where(jnp.sum(valid) < min_pts, reason_code("too_few"), reason_code("degenerate"))
+    if curved:
+        # enough points, not collinear (the test the circle and ellipse fits make), and still
+        # no circle / ellipse (a conic that is no ellipse, a negative Kasa radius): unsupported
+        w = jnp.asarray(valid, pts.dtype)
+        u, v, *_, spread = _normalise(jax.lax.stop_gradient(pts), w)
+        *_, lo, hi = _scatter_eigs(u, v, w)
+        reason = jnp.where((reason == reason_code("degenerate")) & spread & (lo > 1e-10 * hi),
+                           reason_code("unsupported_model"), reason)
+    if max_steps is not None:
+        reason = jnp.where((reason != reason_code("too_few")) & (iterations >= max_steps),
+                           reason_code("max_iterations"), reason)
+    reason = jnp.where(ok, reason_code("ok"), reason)
+    return Fit(params, names, kind, rms, ok, iterations=iterations, n_used=n, reason=reason)
+
+
+def _refuse(f, bad, who):
+    """Fail closed where the fitted model is not supported by the points: NaN, ``converged``
+    False and reason ``unsupported_model`` ("no circle" / "no ellipse")."""
+    f = eqx.tree_at(lambda o: o.reason, f,
+                    jnp.where(bad & f.converged, reason_code("unsupported_model"), f.reason).astype(jnp.int32))
+    return poison(f, bad, who=who)
 
 
 def _unsupported(f, resid_fn, pts, used, size, checked, max_rel_rms, max_rel_se):
@@ -252,7 +277,8 @@ def _fit_line_core(pts, valid, k, *, robust, rounds):
         return params, ok, it, None
 
     params, ok, it, used = _robust_fit(fit, _line_resid, pts, valid, robust=robust, k=k, rounds=rounds, min_pts=2)
-    return _finish(params, ok, _line_resid, pts, used, it, ("row", "col", "angle_deg"), "line")
+    return _finish(params, ok, _line_resid, pts, used, it, ("row", "col", "angle_deg"), "line", valid=valid,
+                   min_pts=2)
 
 
 @register(family="fit2d", takes=Contour, gives=Fit, knobs={"k": _K_KNOB}, differentiable=False,
@@ -359,9 +385,18 @@ def _fit_circle_core(pts, valid, k, max_rel_rms, max_rel_se, *, robust, rounds, 
     fit = functools.partial(_circle_fit, refine=refine, max_steps=max_steps)
     params, ok, it, used = _robust_fit(fit, _circle_resid, pts, valid, robust=robust, k=k, rounds=rounds,
                                        min_pts=3)
-    f = _finish(params, ok, _circle_resid, pts, used, it, ("row", "col", "radius"), "circle")
+    f = _finish(params, ok, _circle_resid, pts, used, it, ("row", "col", "radius"), "circle", valid=valid,
+                min_pts=3, max_steps=max_steps if refine else None, curved=True)
+    # a solve that did not converge at a radius above 5x the points' extent (their largest
+    # distance from their centroid: an arc under ~45 degrees, e.g. a noisy straight line,
+    # r 207 for an extent of 22 px) is fitting a flat curve: say "no circle"
+    p0 = jax.lax.stop_gradient(pts)
+    mid = jnp.sum(jnp.where(valid[:, None], p0, 0.0), 0) / jnp.maximum(jnp.sum(valid), 1)
+    ext = jnp.max(jnp.where(valid, jnp.hypot(p0[:, 0] - mid[0], p0[:, 1] - mid[1]), 0.0))
+    flat = (f.reason == reason_code("max_iterations")) & ~(params[2] <= 5 * ext)
+    f = eqx.tree_at(lambda o: o.reason, f, jnp.where(flat, reason_code("unsupported_model"), f.reason).astype(jnp.int32))
     bad = _unsupported(f, _circle_resid, pts, used, f.params[2], (0, 1, 2), max_rel_rms, max_rel_se)
-    return poison(f, bad, who="fit_circle")
+    return _refuse(f, bad, "fit_circle")
 
 
 @register(family="fit2d", takes=Contour, gives=Fit, knobs={"k": _K_KNOB}, differentiable=False,
@@ -595,13 +630,14 @@ def _fit_ellipse_core(pts, valid, k, max_rel_rms, max_rel_se, *, robust, rounds,
     fit = functools.partial(_ellipse_fit, refine=refine, max_steps=max_steps)
     params, ok, it, used = _robust_fit(fit, _ellipse_resid, pts, valid, robust=robust, k=k, rounds=rounds,
                                        min_pts=5)
-    f = _finish(params, ok, _ellipse_resid, pts, used, it, ("row", "col", "a", "b", "angle_deg"), "ellipse")
+    f = _finish(params, ok, _ellipse_resid, pts, used, it, ("row", "col", "a", "b", "angle_deg"), "ellipse",
+                valid=valid, min_pts=5, max_steps=max_steps if refine else None, curved=True)
     # an ellipse narrower than its own misfit is not resolved by the points (a straight noisy
     # contour gave a converged 8.98 x 0.054 ellipse with rms 1.02 px): fail closed
-    f = poison(f, ~(jnp.minimum(f.params[2], f.params[3]) > 2 * f.rms), who="fit_ellipse")
+    f = _refuse(f, ~(jnp.minimum(f.params[2], f.params[3]) > 2 * f.rms), "fit_ellipse")
     bad = _unsupported(f, _ellipse_resid, pts, used, jnp.minimum(f.params[2], f.params[3]), (0, 1, 2, 3),
                        max_rel_rms, max_rel_se)
-    return poison(f, bad, who="fit_ellipse")
+    return _refuse(f, bad, "fit_ellipse")
 
 
 @register(family="fit2d", takes=Contour, gives=Fit, knobs={"k": _K_KNOB}, differentiable=False,
