@@ -31,7 +31,10 @@ coplanar for a sphere, parallel normals for a cylinder), when the refitted
 inlier set is degenerate (a plane's inliers must spread more than
 ``threshold`` across two directions, a line's along one), when a sphere's or
 cylinder's inliers all lie within ``threshold`` of one plane (the data do not
-resolve any curvature: a huge radius would fit a flat patch), when the consensus
+resolve any curvature: a huge radius would fit a flat patch), when the points do not
+thin out beyond the threshold (more than ``max_shell_ratio`` of the inlier count in the
+shell ``threshold < d <= 2 threshold``: a plane, sphere or cylinder cut through two
+blobs of points took 28 % of them as "inliers"), when the consensus
 is below ``min_inlier_fraction`` of the valid points (the usual symptom of
 too many outliers for the hypothesis count), or when the nonlinear refit did
 not converge. ``reason`` gives the code of :data:`fsjax.types.RESULTS` (``too_few``,
@@ -57,7 +60,7 @@ import optimistix as optx
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from .._checks import check_choice, check_positive, check_range, check_static_int
+from .._checks import check_choice, check_positive, check_range, check_static_int, is_concrete
 from .._linalg import levenberg_marquardt
 from ..ops import estimate_normals
 from ..types import NamedParams, Points
@@ -312,7 +315,7 @@ _IMPL = {
 
 
 @functools.partial(jax.jit, static_argnames=("model", "n_hyp", "max_steps", "rounds"))
-def _core(key, xyz, valid, normals, thr, min_frac, *, model, n_hyp, max_steps, rounds):
+def _core(key, xyz, valid, normals, thr, min_frac, max_shell, *, model, n_hyp, max_steps, rounds):
     hyp, dist, refit = _IMPL[model]
     names, s = MODELS[model]
     dt = xyz.dtype
@@ -368,8 +371,13 @@ def _core(key, xyz, valid, normals, thr, min_frac, *, model, n_hyp, max_steps, r
         flat = (n_in >= 3) & (jnp.max(jnp.where(inl, dev, 0.0)) <= thr)
     else:
         flat = jnp.asarray(False)
+    # a surface (or line) thins out beyond the threshold; a slice through a volume of points
+    # does not: as many points lie in the shell thr < d <= 2 thr as within thr (two blobs
+    # gave an accepted plane, sphere and cylinder with 28 % "inliers"), so refuse the model
+    shell = jnp.sum((r > thr) & (r <= 2 * thr) & valid)
+    thick = shell > max_shell * n_in.astype(dt)
     reason = jnp.select(
-        [~enough, bad_coord, ~any_ok, low, ~ok_refit, flat],
+        [~enough, bad_coord, ~any_ok, low, ~ok_refit, flat | thick],
         [1, 2, 3, 4, 5, 6], 0).astype(jnp.int32)
     # a degenerate refitted set (plane/line) is a degeneracy, not a solver failure
     if model in ("plane", "line"):
@@ -393,7 +401,7 @@ def _pca_normals(xyz, v):
 
 def ransac(key, points, model: str = "plane", *, threshold: float = 0.01, n_hypotheses: int = 256,
            min_inlier_fraction: float = 0.15, valid=None, normals=None, max_steps: int = 100,
-           rounds: int = 3) -> RansacResult:
+           rounds: int = 3, max_shell_ratio: float = 0.5) -> RansacResult:
     """RANSAC fit of a plane, line, sphere or cylinder to a 3-D point set.
 
     Args:
@@ -415,6 +423,12 @@ def ransac(key, points, model: str = "plane", *, threshold: float = 0.01, n_hypo
         the cloud's, else PCA normals from 12 neighbours).
       max_steps: Levenberg-Marquardt step cap of the nonlinear refits.
       rounds: refit / re-derive inliers rounds (static, default 3).
+      max_shell_ratio: the model is refused (``unsupported_model``) when more than this
+        fraction of its inlier count lies in the shell ``threshold < d <= 2 threshold``
+        (default 0.5): the points do not thin out beyond the threshold, so the "inliers"
+        are a slice through a volume of points, not a surface or line. Gaussian noise of
+        sigma = threshold gives 0.40, sigma = threshold / 2 0.05; a uniform volume ~1
+        (module notes). ``inf`` disables the test.
 
     Returns:
       :class:`RansacResult` (``kind`` = model, ``names`` its parameters).
@@ -433,12 +447,15 @@ def ransac(key, points, model: str = "plane", *, threshold: float = 0.01, n_hypo
     n_hypotheses = check_static_int(fn, "n_hypotheses", n_hypotheses, lo=1)
     check_positive(fn, "threshold", threshold)
     check_range(fn, "min_inlier_fraction", min_inlier_fraction, 0.0, 1.0)
+    if is_concrete(max_shell_ratio) and not float(max_shell_ratio) > 0:  # inf allowed: no test
+        raise ValueError(f"{fn}: argument 'max_shell_ratio' must be a positive number (inf: no test); "
+                         f"got {max_shell_ratio!r}")
     xyz, v, nrm = as_cloud(fn, "points", points, valid, normals)
     if model == "cylinder" and nrm is None:
         nrm = _pca_normals(xyz, v)
     dt = xyz.dtype
     return _core(key, xyz, v, nrm, jnp.asarray(threshold, dt), jnp.asarray(min_inlier_fraction, dt),
-                 model=model, n_hyp=int(n_hypotheses), max_steps=int(max_steps), rounds=int(rounds))
+                 jnp.asarray(max_shell_ratio, dt), model=model, n_hyp=int(n_hypotheses), max_steps=int(max_steps), rounds=int(rounds))
 
 
 def ransac_plane(key, points, **kw: Any) -> RansacResult:

@@ -55,7 +55,8 @@ class RESULTS(eqx.Enumeration):
     pure_rotation = "pure rotation: no parallax (t undefined; R from bearing alignment)"
     cheirality = "no pose puts the inliers in front of both cameras"
     unsupported_model = ("unsupported model: the points do not resolve it (3-D: the inliers also lie "
-                         "within threshold of a plane, no curvature resolved; 2-D circle / ellipse: "
+                         "within threshold of a plane, no curvature resolved, or the points do not thin "
+                         "out beyond the threshold, a slice through a volume; 2-D circle / ellipse: "
                          "misfit or uncertainty above max_rel_rms / max_rel_se of its size)")
     not_found = "the pattern was not found (no response, too few candidates or no complete grid)"
     pattern_mismatch = "the pattern does not match the board (more or fewer inner corners)"

@@ -131,6 +131,34 @@ def test_curved_model_on_a_flat_patch_refused():
     assert r.result == RESULTS.unsupported_model and "plane" in r.message
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_model_through_a_volume_of_points_refused(dtype):
+    """Issue 20 (detectors accepting a model the data do not support): two blobs of points
+    (sigma 0.03, threshold 0.01) gave an accepted plane, sphere (r 1.66) and cylinder with
+    28 % "inliers": a slab cut through the blobs. A surface thins out beyond the threshold, a
+    volume does not, so the model is now refused (unsupported_model) when the shell
+    thr < d <= 2 thr holds more than half as many points as the inliers. A plane with noise
+    sigma = threshold (shell ratio ~0.4) and the 0.3-outlier plane are still found."""
+    rng = np.random.default_rng(0)
+    blobs = np.concatenate([rng.normal(0, 0.03, (200, 3)), rng.normal(0.8, 0.03, (200, 3))]).astype(dtype)
+    for model in ("plane", "sphere", "cylinder"):
+        r = ransac(jax.random.PRNGKey(0), jnp.asarray(blobs), model, threshold=0.01)
+        assert not bool(r.converged) and int(r.reason) == reason_code("unsupported_model"), (model, int(r.reason))
+        assert bool(np.all(np.isnan(np.asarray(r.params))))
+        # the null: without the test the slab is accepted (what the old code did)
+        assert bool(ransac(jax.random.PRNGKey(0), jnp.asarray(blobs), model, threshold=0.01,
+                           max_shell_ratio=float("inf")).converged), model
+    g = rng.uniform(-1, 1, (400, 2))
+    noisy = np.c_[g, 0.3 + 0.01 * rng.normal(size=400)].astype(dtype)  # noise sigma = threshold
+    r = ransac(jax.random.PRNGKey(1), jnp.asarray(noisy), "plane", threshold=0.01)
+    assert bool(r.converged) and abs(float(r["d"]) * np.sign(float(r["nz"])) - 0.3) < 0.01
+    x, n = plane_scene(7, 0.3)
+    r = ransac(jax.random.PRNGKey(2), jnp.asarray(x.astype(dtype)), "plane", threshold=0.01)
+    assert bool(r.converged) and _angle(np.asarray(r.params[:3])[None], n[None])[0] < 1.0
+    with pytest.raises(ValueError, match="ransac.*max_shell_ratio"):
+        ransac(jax.random.PRNGKey(0), jnp.asarray(blobs), "plane", threshold=0.01, max_shell_ratio=0.0)
+
+
 RATIOS = (0.0, 0.3, 0.6, 0.7, 0.8, 0.9)
 
 
