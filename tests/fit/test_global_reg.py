@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fsjax.fit import fpfh, ransac_registration, rotation_error_deg, rotation_from_axis_angle
 from fsjax.data import surface_points
+from fsjax.fit import fpfh, ransac_registration, rotation_error_deg, rotation_from_axis_angle
 from fsjax.tour.registration import measure_global
 
 COARSE_MAX = 1.0  # issue 4 item 2: FPFH + RANSAC (with the point-pair refit) within 1 deg
