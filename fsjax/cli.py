@@ -170,9 +170,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if not isinstance(x, pipe.takes):
         raise SystemExit(f"fsjax run: stage 1 takes {pipe.takes.__name__}, the file gives {type(x).__name__}")
     print(f"running {len(pipe)} stage(s) (each op compiles on its first call) ...", flush=True)
-    outs = pipe.trace(x)
-    for i, (st, y) in enumerate(zip(pipe.stages, outs)):
-        print(f"stage {i + 1}: {st} -> {type(y).__name__}{_summary(y)}")
+    import time
+
+    import jax
+
+    t0 = [time.perf_counter()]
+
+    def progress(i, st, y):  # one line per finished stage, as it finishes (large images take a while)
+        jax.block_until_ready(y)
+        t = time.perf_counter()
+        print(f"stage {i + 1}/{len(pipe)}: {st} -> {type(y).__name__}{_summary(y)} ({t - t0[0]:.1f} s)", flush=True)
+        t0[0] = t
+
+    outs = pipe.trace(x, on_stage=progress)
     y = outs[-1]
     if isinstance(y, fsjax.Feature):
         print(f"result: {float(y.value):.10g}{(' ' + y.unit) if y.unit else ''}")

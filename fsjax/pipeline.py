@@ -284,13 +284,19 @@ class Pipeline:
             knobs = jnp.asarray(knobs)
         return self._compiled(x, knobs)
 
-    def trace(self, x: Any, knobs: Any = None) -> list[Any]:
-        """Stage diagnostics: the output of every stage (eager, not compiled)."""
+    def trace(self, x: Any, knobs: Any = None, *, on_stage: Any = None) -> list[Any]:
+        """Stage diagnostics: the output of every stage (eager, not compiled).
+
+        ``on_stage(i, stage, out)``, when given, is called after stage ``i`` (0-based) has
+        finished (its output computed), so a caller can report progress stage by stage.
+        """
         self._check_call(x, knobs)
         outs = []
         for i, st in enumerate(self.stages):
             x = st.call(x, None if knobs is None else jnp.asarray(knobs)[i])
             outs.append(x)
+            if on_stage is not None:
+                on_stage(i, st, x)
         return outs
 
     def describe(self) -> str:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -42,8 +44,10 @@ def test_run_pipeline_on_file(png, tmp_path, capsys):
     assert main(["run", str(png), "gaussian:sigma=2", "sobel_amp", "otsu", "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "(uint8 / 255)" in text
-    assert "stage 1: gaussian:sigma=2 -> Image" in text
-    assert "stage 3: otsu -> Region" in text
+    # progress (issue 20 item 6): one line per stage as it finishes, numbered of the total, timed
+    assert "stage 1/3: gaussian:sigma=2 -> Image" in text
+    assert "stage 3/3: otsu -> Region" in text
+    assert len(re.findall(r"^stage [123]/3: .* \(\d+\.\d s\)$", text, re.M)) == 3
     assert out.exists()
     # the written mask equals the library's own result on the same file
     from PIL import Image as PILImage

@@ -125,3 +125,14 @@ def test_traced_out_of_range_knobs_fail_closed():
     # a knob row of a stage without knobs is ignored, as documented
     y2 = jax.jit(lambda k: p(x, k).data)(jnp.array([[0.5, 0.5], [7.0, 7.0]], jnp.float32))
     assert bool(jnp.all(jnp.isfinite(y2)))
+
+
+def test_trace_reports_each_stage_as_it_finishes():
+    """Issue 20 item 6: `fsjax run` printed nothing until every stage had run; Pipeline.trace now
+    calls on_stage(i, stage, out) after each stage (the CLI prints a timed line per stage)."""
+    seen = []
+    p = fsjax.pipeline(["gaussian", "sobel_amp", "otsu"])
+    x = fsjax.Image(jnp.linspace(0, 1, 24 * 32).reshape(24, 32))
+    outs = p.trace(x, on_stage=lambda i, st, y: seen.append((i, st.spec.name, y)))
+    assert [(i, n) for i, n, _ in seen] == [(0, "gaussian"), (1, "sobel_amp"), (2, "otsu")]
+    assert all(y is o for (_, _, y), o in zip(seen, outs))
