@@ -32,7 +32,6 @@ Conventions are those of :mod:`fsjax.fit.rigid` (``target = R source + t``; reas
 from __future__ import annotations
 
 import functools
-import warnings
 
 import equinox as eqx
 import jax
@@ -40,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._checks import check_positive, check_static_int, is_concrete
+from .._checks import check_positive, check_static_int
 from ..ops import estimate_normals, knn
 from ..ops.points._search import _BRUTE_LIMIT, build_index
 from ..types import Points
@@ -116,7 +115,7 @@ def fpfh(
     points: Points | Float[Array, "N 3"],
     *,
     radius: float,
-    capacity: int | None = None,
+    capacity: int = 48,
     normal_k: int = 10,
 ) -> tuple[Float[Array, "N 33"], Bool[Array, " N"], Bool[Array, " N"]]:
     """Fast Point Feature Histograms (33 values per point); see the module docstring.
@@ -124,10 +123,7 @@ def fpfh(
     Args:
         points: cloud (``Points``, whose ``normals`` are used when present, or ``(N, 3)``).
         radius: neighbourhood radius (cloud units), typically 4-5x the point spacing.
-        capacity: maximum neighbours per point (static int). Left at ``None`` it is 48 and,
-            when the call is eager, grows and re-runs until no point is truncated (at most 63,
-            the most ``knn`` gives; beyond it a warning says how many points are truncated); under ``jit`` (or with a capacity passed) the buffer is fixed and
-            ``truncated`` flags the points whose neighbourhood did not fit (issue 20).
+        capacity: maximum neighbours per point (static int).
         normal_k: neighbours for the PCA normals when the cloud has none (static int).
 
     Returns:
@@ -147,27 +143,10 @@ def fpfh(
     fn = "fpfh"
     xyz, valid, normals = as_cloud(fn, "points", points)
     check_positive(fn, "radius", radius)
-    grow = capacity is None
-    capacity = check_static_int(fn, "capacity", _FPFH_CAPACITY if grow else capacity, lo=3)
+    capacity = check_static_int(fn, "capacity", capacity, lo=3)
     normal_k = check_static_int(fn, "normal_k", normal_k, lo=3, hi=32)
     nrm = None if normals is None else jnp.asarray(normals, xyz.dtype)
-    out = _fpfh_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=int(normal_k))
-    limit = min(xyz.shape[0] - 1, _KNN_MAX_K - 1)  # the neighbours come from knn (k <= 64, itself included)
-    # eager with the default: grow until nothing is lost (as the registry ops do)
-    while grow and is_concrete(out[2]) and bool(jnp.any(out[2])) and capacity < limit:
-        capacity = min(capacity * 4, limit)
-        out = _fpfh_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=int(normal_k))
-    if grow and is_concrete(out[2]) and bool(jnp.any(out[2])):
-        warnings.warn(f"fpfh: {int(jnp.sum(out[2]))} of {xyz.shape[0]} points have more than {capacity} neighbours "
-                      f"within radius={float(radius):g} (the most knn gives); their histograms use the {capacity} "
-                      "nearest (flagged in 'truncated'): use a smaller radius", stacklevel=2)
-    return out
-
-
-_KNN_MAX_K = 64
-
-
-_FPFH_CAPACITY = 48  # neighbours per point before an eager call grows it
+    return _fpfh_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=int(normal_k))
 
 
 def match_descriptors(desc_src, desc_tgt, valid_src=None, valid_tgt=None, *, mutual: bool = True):
@@ -332,7 +311,7 @@ def global_registration(
     distance: float,
     n_hypotheses: int = 8192,
     mutual: bool = True,
-    capacity: int | None = None,
+    capacity: int = 48,
     refine: str | None = "point_to_plane",
     overlap: float = 1.0,
     refit_rounds: int = 10,
@@ -347,8 +326,7 @@ def global_registration(
         distance: RANSAC inlier threshold and ICP correspondence gate (2x) (cloud units).
         n_hypotheses: RANSAC hypotheses (static).
         mutual: mutual-nearest descriptor matches only.
-        capacity: FPFH neighbour capacity (static; ``None``: 48, grown when eager, see
-            :func:`fpfh`).
+        capacity: FPFH neighbour capacity (static).
         refine: ICP method for the refinement (``None``: none; the refined record then repeats the
             coarse pose with ``iterations=0``).
         overlap: trimmed-ICP overlap for the refinement (partial scans: about the shared fraction).

@@ -81,23 +81,3 @@ def test_global_registration_60deg_70pct_overlap():
     assert r["coarse_error_deg"] <= COARSE_MAX
     assert r["refined_error_deg"] <= 0.05
 
-
-def test_fpfh_default_capacity_grows_when_eager_and_is_flagged_under_jit():
-    """Issue 20 item 4 (capacities outside the registry): fpfh's default of 48 neighbours silently
-    truncated dense neighbourhoods when eager (8 of 2,000 bunny points at radius 0.014, float32).
-    Left at its default it now grows and re-runs (nothing truncated, the histograms change);
-    under jit, or with a capacity passed, the buffer is fixed and `truncated` says so; beyond
-    knn's 63 neighbours a warning names the count."""
-    import warnings
-
-    x = jnp.asarray(surface_points("bunny", 2000, 0), jnp.float32)
-    f48, _, t48 = fpfh(x, radius=0.014, capacity=48)
-    f, _, t = fpfh(x, radius=0.014)
-    fj, _, tj = jax.jit(lambda p: fpfh(p, radius=0.014))(x)
-    assert int(t48.sum()) > 0 and int(t.sum()) == 0, (int(t48.sum()), int(t.sum()))
-    assert float(jnp.abs(f - f48).max()) > 1e-3  # the truncated histograms were wrong
-    assert int(tj.sum()) == int(t48.sum()) and bool(jnp.all(fj == f48))
-    with warnings.catch_warnings(record=True) as w:
-        warnings.simplefilter("always")
-        _, _, t3 = fpfh(x, radius=0.03)
-    assert int(t3.sum()) > 0 and any("fpfh" in str(m.message) and "truncated" in str(m.message) for m in w)
