@@ -48,5 +48,16 @@ for name, fn in [("6 0x0 Image", lambda: fsjax.Image(jnp.zeros((0, 0)))),
         out[name] = f"{type(e).__name__}: {str(e)[:70]}"
 out["6 np.asarray(img).shape"] = np.asarray(x).shape
 out["6 fsjax.io.read_image"] = callable(fsjax.io.read_image)
+# the sweep's detectors: a model the data do not support is refused with a reason
+rng = np.random.default_rng(0)
+t = rng.uniform(0, 40, 60)
+for name, pts in [("scatter", rng.uniform(0, 30, (60, 2))),
+                  ("line", np.stack([5 + 0.5 * t, 3 + t], -1) + 0.3 * rng.standard_normal((60, 2)))]:
+    c = fsjax.Contour(jnp.asarray(pts, jnp.float32))
+    out[f"sweep fit_circle / fit_ellipse on a {name}: reason"] = [fsjax.ops.fit_circle(c).message[:19],
+                                                                fsjax.ops.fit_ellipse(c).message[:19]]
+blobs = np.concatenate([rng.normal(0, 0.03, (200, 3)), rng.normal(0.8, 0.03, (200, 3))])
+out["sweep ransac plane through two blobs: reason"] = int(
+    fsjax.fit.ransac(jax.random.PRNGKey(0), jnp.asarray(blobs, jnp.float32), "plane", threshold=0.01).reason)
 for k, val in out.items():
     print(f"{k}: {val}")
