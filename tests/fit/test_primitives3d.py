@@ -224,25 +224,41 @@ def _select_lowered(x):
     return _SELECT_EXE[key]
 
 
-def _select_chunked(x):
-    """``vmap(select_model)`` over ``x`` in chunks of ``_CHUNK`` (the last one padded), results concatenated."""
-    n = x.shape[0]
-    pad = -n % _CHUNK
-    xp = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
-    parts = [_select(xp[i:i + _CHUNK]) for i in range(0, n + pad, _CHUNK)]
+_CHUNKS = {}  # (model index, chunk start) -> results of that chunk, shared by the two tests below
+
+
+def _chunk(i, start):
+    """``vmap(select_model)`` on trials ``start .. start + _CHUNK - 1`` of model ``MODELS[i]``.
+
+    Trial ``t`` of model ``i`` is ``sample(kind, 1000 * i + t)`` whatever the number of trials, so
+    the 67-trial test is exactly the first chunk of the 200-trial one: a chunk computed for one test
+    is reused by the other when both run in the same process (they were computed twice before).
+    """
+    key = (i, start)
+    if key not in _CHUNKS:
+        kind = MODELS[i]
+        _CHUNKS[key] = _select(jnp.asarray(np.stack([sample(kind, 1000 * i + t)
+                                                     for t in range(start, start + _CHUNK)])))
+    return _CHUNKS[key]
+
+
+def _select_chunked(i, n):
+    """``vmap(select_model)`` over the first ``n`` trials of model ``MODELS[i]``, in chunks of
+    ``_CHUNK`` (the last one filled with further trials and cut off), results concatenated."""
+    parts = [_chunk(i, s) for s in range(0, n, _CHUNK)]
     return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a)[:n], *parts)
 
 
 def _selection_rates(trials):
     rates, evidence = {}, {}
     for i, kind in enumerate(MODELS):
-        x = jnp.asarray(np.stack([sample(kind, 1000 * i + t) for t in range(trials)]))
         if i == 0:
+            x = jnp.asarray(np.stack([sample(kind, t) for t in range(_CHUNK)]))
             # jaxlib 0.10's batched CPU LAPACK kernels can deadlock XLA:CPU's thread pool when several
             # run at once (tools/repro_xla_hang.py); select_model is written without them.
-            calls = re.findall(r"custom_call @(\w+)", _select_lowered(x[:_CHUNK])[0].as_text())
+            calls = re.findall(r"custom_call @(\w+)", _select_lowered(x)[0].as_text())
             assert not [c for c in calls if "lapack" in c], f"LAPACK custom calls in vmap(select_model): {calls}"
-        r = _select_chunked(x)
+        r = _select_chunked(i, trials)
         bic_pick = np.asarray(r.choice)
         aic_pick = np.argmin(np.asarray(r.aic), axis=1)
         rates[kind] = (float(np.mean(bic_pick == i)), float(np.mean(aic_pick == i)))
