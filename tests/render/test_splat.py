@@ -45,15 +45,18 @@ def test_tiled_matches_dense_images(tile_size, capacity):
     assert float(jnp.max(a.alpha)) > 0.9 and float(jnp.min(a.alpha)) == 0.0  # a non-trivial image
 
 
-def _loss_fn(renderer, cam_w=40, cam_h=30):
-    rng = np.random.default_rng(5)
+def _loss_fn(renderer, cam_w=40, cam_h=30, *, seed=5, distortion=True):
+    """A random linear functional of every output (``distortion=False``: of every output the
+    distortion-free training path produces: colour, alpha, depth, median depth)."""
+    rng = np.random.default_rng(seed)
     wc = jnp.asarray(rng.uniform(0, 1, (cam_h, cam_w, 3)))
     wa, wd, wm = (jnp.asarray(rng.uniform(0, 1, (cam_h, cam_w))) for _ in range(3))
 
     def loss(g, cam):
         out = renderer(g, cam)
-        return (jnp.sum(wc * out.color) + jnp.sum(wa * out.alpha) + 0.1 * jnp.sum(wd * out.depth)
-                + 0.1 * jnp.sum(wm * out.median_depth) + jnp.sum(out.distortion))
+        val = (jnp.sum(wc * out.color) + jnp.sum(wa * out.alpha) + 0.1 * jnp.sum(wd * out.depth)
+               + 0.1 * jnp.sum(wm * out.median_depth))
+        return val + jnp.sum(out.distortion) if distortion else val
     return loss
 
 
@@ -334,17 +337,8 @@ def test_default_is_exact_when_a_tile_holds_more_than_the_old_capacity():
     assert int(a.max_tile_count) > 256 and int(a.overflow) == 0 and d < 1e-12
 
 
-def _plain_loss(renderer, cam_w=40, cam_h=30):
-    # every output the distortion-free training path produces: colour, alpha, depth, median depth
-    rng = np.random.default_rng(7)
-    wc = jnp.asarray(rng.uniform(0, 1, (cam_h, cam_w, 3)))
-    wa, wd, wm = (jnp.asarray(rng.uniform(0, 1, (cam_h, cam_w))) for _ in range(3))
-
-    def loss(g, cam):
-        out = renderer(g, cam)
-        return (jnp.sum(wc * out.color) + jnp.sum(wa * out.alpha) + 0.1 * jnp.sum(wd * out.depth)
-                + 0.1 * jnp.sum(wm * out.median_depth))
-    return loss
+def _plain_loss(renderer):
+    return _loss_fn(renderer, seed=7, distortion=False)
 
 
 def _plain_tiled(g, cam):
