@@ -56,6 +56,7 @@ _REFS = [
     "M. Luby, A simple parallel algorithm for the maximal independent set problem, SIAM J. Comput. 15(4), 1986",
 ]
 _INT_MAX = jnp.iinfo(jnp.int32).max
+_LUBY_PASSES = 6
 
 
 def _plane_quadric(n, d):
@@ -142,6 +143,35 @@ def _initial_quadrics(pos, faces, fvalid, boundary_weight):
     return q, on_boundary
 
 
+def _spread(mark, a, b, is_edge):
+    """Vertices marked, or one edge away from a marked vertex."""
+    return mark.at[a].max(is_edge & mark[b]).at[b].max(is_edge & mark[a])
+
+
+def _independent_edges(a, b, is_edge, eligible, prio, nv, passes=_LUBY_PASSES):
+    """Eligible edges, pairwise at least two edges apart, by ``passes`` rounds of Luby's rule.
+
+    A pass selects each candidate whose priority is the smallest among the candidates within
+    one edge of either endpoint; candidates within one edge of a selected endpoint then drop
+    out, and the next pass runs on the rest. One pass alone selects about one edge per
+    neighbourhood of candidates, which is few where the cheap edges cluster (a flat region);
+    repeated passes approach a maximal set of such edges.
+    """
+    def one_pass(_, carry):
+        sel, cand = carry
+        p = jnp.where(cand, prio, _INT_MAX)
+        m1 = jnp.full((nv,), _INT_MAX, jnp.int32).at[a].min(p).at[b].min(p)
+        m2 = m1.at[a].min(jnp.where(is_edge, m1[b], _INT_MAX)).at[b].min(jnp.where(is_edge, m1[a], _INT_MAX))
+        new = cand & (p == m2[a]) & (p == m2[b])
+        sel = sel | new
+        taken = jnp.zeros((nv,), bool).at[a].max(new).at[b].max(new)
+        near = _spread(taken, a, b, is_edge)
+        return sel, cand & ~new & ~near[a] & ~near[b]
+
+    sel, _ = lax.fori_loop(0, passes, one_pass, (jnp.zeros_like(eligible), eligible))
+    return sel
+
+
 def _round(state, target):
     pos, q, faces, fvalid, vvalid, on_bnd, blocked, rounds, _ = state
     nv = pos.shape[0]
@@ -184,9 +214,7 @@ def _round(state, target):
     _, hperm = lax.sort((jnp.where(eligible, h, jnp.uint32(0xFFFFFFFF)), jnp.arange(m, dtype=jnp.int32)), num_keys=1)
     prio = jnp.zeros((m,), jnp.int32).at[hperm].set(jnp.arange(m, dtype=jnp.int32))  # unique
     prio = jnp.where(eligible, prio, _INT_MAX)
-    m1 = jnp.full((nv,), _INT_MAX, jnp.int32).at[a].min(prio).at[b].min(prio)
-    m2 = m1.at[a].min(jnp.where(is_edge, m1[b], _INT_MAX)).at[b].min(jnp.where(is_edge, m1[a], _INT_MAX))
-    sel = eligible & (prio == m2[a]) & (prio == m2[b])
+    sel = _independent_edges(a, b, is_edge, eligible, prio, nv)
     # link condition: common neighbours of a and b must be exactly the edge's triangles' apexes
     partner = jnp.full((nv,), -1, jnp.int32).at[jnp.where(sel, a, nv)].set(b, mode="drop") \
         .at[jnp.where(sel, b, nv)].set(a, mode="drop")
