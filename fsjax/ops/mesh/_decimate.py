@@ -21,7 +21,7 @@ Conventions:
   on the GPU). A round refuses a collapse that breaks the link condition (the endpoints
   share other neighbours than the edge's own triangles: it would create a non-manifold
   edge or a fin), that turns a remaining face by more than ~84 degrees for every candidate
-  position (a fold-over), or whose cheapest non-folding position costs more than twice the
+  position (a fold-over) or leaves it without area, or whose cheapest non-folding position costs more than twice the
   cost it was ranked by. A refused edge waits until a collapse next to it changes its
   surroundings.
 * The number of collapses of the last round is cut so that the face count lands on the
@@ -57,6 +57,7 @@ _REFS = [
 ]
 _INT_MAX = jnp.iinfo(jnp.int32).max
 _LUBY_PASSES = 6
+_N_BUCKETS = 256
 
 
 def _plane_quadric(n, d):
@@ -66,15 +67,24 @@ def _plane_quadric(n, d):
     return p[..., i] * p[..., j]
 
 
-def _unpack(q):
-    i, j = jnp.triu_indices(4)
-    m = jnp.zeros(q.shape[:-1] + (4, 4), q.dtype).at[..., i, j].set(q)
-    return m + jnp.swapaxes(m, -1, -2) - m * jnp.eye(4, dtype=q.dtype)
+# packed slots of the upper triangle of a symmetric 4x4 matrix, in jnp.triu_indices(4) order
+_SLOT = ((0, 1, 2, 3), (1, 4, 5, 6), (2, 5, 7, 8), (3, 6, 8, 9))
 
 
-def _cost(m, v):
-    h = jnp.concatenate([v, jnp.ones(v.shape[:-1] + (1,), v.dtype)], axis=-1)
-    return jnp.maximum(jnp.einsum("...i,...ij,...j->...", h, m, h), 0.0)
+def _block(q):
+    """The 3x3 block ``A`` and the vector ``b`` of a packed quadric ``[[A, b], [b^T, c]]``."""
+    a = jnp.stack([jnp.stack([q[..., _SLOT[i][j]] for j in range(3)], -1) for i in range(3)], -2)
+    return a, jnp.stack([q[..., _SLOT[i][3]] for i in range(3)], -1)
+
+
+def _cost(q, v):
+    """``h^T Q h`` with ``h = (v, 1)``, from the packed quadric, elementwise (a batched 4x4
+    product of tiny matrices is far slower on a CPU)."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    c = (q[..., 0] * x * x + q[..., 4] * y * y + q[..., 7] * z * z + q[..., 9]
+         + 2.0 * (q[..., 1] * x * y + q[..., 2] * x * z + q[..., 5] * y * z
+                  + q[..., 3] * x + q[..., 6] * y + q[..., 8] * z))
+    return jnp.maximum(c, 0.0)
 
 
 def _solve3(a, b):
@@ -91,7 +101,8 @@ def _edges(faces, fvalid):
     """Undirected edges of the valid faces: ``(lo, hi, face, count, is_edge)`` per slot ``(3F,)``.
 
     ``face`` is one face holding the edge (the first in sort order); ``count`` the number of
-    valid faces on it (1: boundary).
+    valid faces on it (1: boundary). Last, ``he_slot`` maps half-edge ``3 f + i`` (face ``f``'s
+    edge from corner ``i`` to ``i + 1``) to its edge's slot.
     """
     nf = faces.shape[0]
     a = faces.reshape(-1)
@@ -100,7 +111,7 @@ def _edges(faces, fvalid):
     lo = jnp.where(ok, jnp.minimum(a, b), _INT_MAX)
     hi = jnp.where(ok, jnp.maximum(a, b), _INT_MAX)
     fid = jnp.repeat(jnp.arange(nf, dtype=jnp.int32), 3)
-    lo, hi, fid = lax.sort((lo, hi, fid), num_keys=2)
+    lo, hi, fid, hidx = lax.sort((lo, hi, fid, jnp.arange(3 * nf, dtype=jnp.int32)), num_keys=2)
     ok = lo != _INT_MAX
     n = lo.shape[0]
     new = ok & ((lo != jnp.roll(lo, 1)) | (hi != jnp.roll(hi, 1)) | (jnp.arange(n) == 0))
@@ -112,7 +123,8 @@ def _edges(faces, fvalid):
     e_hi = jnp.full((n + 1,), _INT_MAX, jnp.int32).at[idx].set(hi)[:n]
     e_f = jnp.zeros((n + 1,), jnp.int32).at[idx].set(fid)[:n]
     is_edge = jnp.arange(n) < jnp.sum(new)
-    return e_lo, e_hi, e_f, count, is_edge
+    he_slot = jnp.zeros((n,), jnp.int32).at[hidx].set(run)
+    return e_lo, e_hi, e_f, count, is_edge, he_slot
 
 
 def _face_normals(pos, faces):
@@ -129,7 +141,7 @@ def _initial_quadrics(pos, faces, fvalid, boundary_weight):
     kf = _plane_quadric(unit, d) * jnp.where(fvalid, 0.5 * dbl_area, 0.0)[:, None]
     q = jnp.zeros((nv, 10), pos.dtype).at[faces.reshape(-1)].add(jnp.repeat(kf, 3, axis=0))
     # boundary constraint planes
-    lo, hi, ef, count, is_edge = _edges(faces, fvalid)
+    lo, hi, ef, count, is_edge, _ = _edges(faces, fvalid)
     bnd = is_edge & (count == 1)
     lo_s, hi_s = jnp.where(bnd, lo, 0), jnp.where(bnd, hi, 0)
     e = pos[hi_s] - pos[lo_s]
@@ -151,38 +163,72 @@ def _spread(mark, a, b, is_edge):
 def _independent_edges(a, b, is_edge, eligible, prio, nv, passes=_LUBY_PASSES):
     """Eligible edges, pairwise at least two edges apart, by ``passes`` rounds of Luby's rule.
 
-    A pass selects each candidate whose priority is the smallest among the candidates within
-    one edge of either endpoint; candidates within one edge of a selected endpoint then drop
-    out, and the next pass runs on the rest. One pass alone selects about one edge per
-    neighbourhood of candidates, which is few where the cheap edges cluster (a flat region);
-    repeated passes approach a maximal set of such edges.
+    ``prio`` holds unique ``uint32`` priorities. A pass selects each candidate whose priority is
+    the smallest among the candidates within one edge of either endpoint; candidates within one
+    edge of a selected endpoint then drop out, and the next pass runs on the rest. One pass
+    alone selects about one edge per neighbourhood of candidates, which is few where the cheap
+    edges cluster (a flat region); repeated passes approach a maximal set of such edges.
     """
+    top = jnp.uint32(0xFFFFFFFF)
+
     def one_pass(_, carry):
         sel, cand = carry
-        p = jnp.where(cand, prio, _INT_MAX)
-        m1 = jnp.full((nv,), _INT_MAX, jnp.int32).at[a].min(p).at[b].min(p)
-        m2 = m1.at[a].min(jnp.where(is_edge, m1[b], _INT_MAX)).at[b].min(jnp.where(is_edge, m1[a], _INT_MAX))
+        p = jnp.where(cand, prio, top)
+        m1 = jnp.full((nv,), top, jnp.uint32).at[a].min(p).at[b].min(p)
+        m2 = m1.at[a].min(jnp.where(is_edge, m1[b], top)).at[b].min(jnp.where(is_edge, m1[a], top))
         new = cand & (p == m2[a]) & (p == m2[b])
-        sel = sel | new
         taken = jnp.zeros((nv,), bool).at[a].max(new).at[b].max(new)
         near = _spread(taken, a, b, is_edge)
-        return sel, cand & ~new & ~near[a] & ~near[b]
+        return sel | new, cand & ~new & ~near[a] & ~near[b]
 
     sel, _ = lax.fori_loop(0, passes, one_pass, (jnp.zeros_like(eligible), eligible))
     return sel
 
 
+def _common_neighbours(a, b, is_edge, partner, owner, nv, m, levels=4):
+    """Per selected edge ``(a, b)``: how many vertices are neighbours of both, and whether that
+    count is in doubt.
+
+    Selected edges are two edges apart, so a vertex can neighbour the endpoints of several
+    selected edges (at most about half its valence: two of them are never adjacent). Each
+    vertex takes its selected edges in increasing order, ``levels`` of them, and counts the
+    edges leading to each: a count of two is a common neighbour of that edge. A vertex with
+    more selected edges around it than ``levels`` leaves those edges in doubt (not collapsed
+    this round).
+    """
+    u = jnp.concatenate([a, b])
+    w = jnp.concatenate([b, a])
+    has = jnp.concatenate([is_edge, is_edge]) & (partner[u] >= 0) & (w != partner[u])
+    e = jnp.where(has, owner[u], m)
+    wd = jnp.where(has, w, nv)
+    prev = jnp.full((nv + 1,), -1, jnp.int32)
+    common = jnp.zeros((m + 1,), jnp.int32)
+    covered = jnp.zeros(e.shape, bool)
+    for _ in range(levels):
+        nxt = jnp.full((nv + 1,), m, jnp.int32).at[wd].min(jnp.where(has & (e > prev[wd]), e, m))
+        hit = has & (e == nxt[wd])
+        c = jnp.zeros((nv + 1,), jnp.int32).at[wd].add(hit.astype(jnp.int32))
+        common = common.at[jnp.where(c == 2, nxt, m)].add(1)
+        covered = covered | hit
+        prev = nxt
+    doubt = jnp.zeros((m + 1,), bool).at[jnp.where(has & ~covered, e, m)].set(True)[:m]
+    return common[:m], doubt
+
+
 def _round(state, target):
-    pos, q, faces, fvalid, vvalid, on_bnd, blocked, rounds, _ = state
-    nv = pos.shape[0]
-    lo, hi, ef, count, is_edge = _edges(faces, fvalid)
-    m = lo.shape[0]
-    a, b = jnp.where(is_edge, lo, 0), jnp.where(is_edge, hi, 0)
-    qa = _unpack(q[a] + q[b])
+    pos, q, faces, fvalid, vvalid, on_bnd, blocked, e_lo, e_hi, fe, rounds, _ = state
+    nv, m = pos.shape[0], e_lo.shape[0]
+    # the edge slots are kept from round to round (one sort, before the first round): a
+    # collapse renames its endpoints, and the edge (b, w) to each apex w merges into (a, w)
+    count = jax.ops.segment_sum(jnp.repeat(fvalid.astype(jnp.int32), 3), fe.reshape(-1), num_segments=m)
+    is_edge = count > 0
+    a, b = jnp.where(is_edge, e_lo, 0), jnp.where(is_edge, e_hi, 0)
+    qa = q[a] + q[b]
+    qa3, qb3 = _block(qa)
     pa, pb = pos[a], pos[b]
     mid = 0.5 * (pa + pb)
-    xs, det = _solve3(qa[:, :3, :3], -qa[:, :3, 3])
-    scale = jnp.trace(qa[:, :3, :3], axis1=-2, axis2=-1) / 3
+    xs, det = _solve3(qa3, -qb3)
+    scale = (qa[:, 0] + qa[:, 4] + qa[:, 7]) / 3
     elen = jnp.sqrt(jnp.sum((pb - pa) ** 2, -1))
     good = (jnp.abs(det) > 1e-5 * jnp.abs(scale) ** 3) & jnp.all(jnp.isfinite(xs), -1) \
         & (jnp.sqrt(jnp.sum((xs - mid) ** 2, -1)) <= elen)
@@ -191,49 +237,44 @@ def _round(state, target):
     cost = jnp.min(costs, axis=1)
     interior = count == 2
     legal = is_edge & (count <= 2) & ~(interior & on_bnd[a] & on_bnd[b])
-    # total order: rank of (cost, slot) among legal edges
-    # ties (flat regions cost ~0) broken by a hash of the edge, not by vertex order: an order
-    # that follows the vertex numbering has few local minima, a scrambled one many
     # an edge refused before (link condition, or every candidate folded) waits until a collapse
     # next to it changes its surroundings
-    legal = legal & ~(blocked[a] & blocked[b])
-    # Costs are bucketed by factors of sqrt(2) before the order is drawn: inside a bucket the
-    # order is a hash, so a smooth run of costs does not leave one local minimum per region
+    legal = legal & ~blocked
+    # The eligible edges are the cheapest eighth, by costs bucketed by factors of sqrt(2)
+    # (a histogram, not a sort); inside the last bucket a hash of the edge draws which ones,
+    # so a smooth run of costs does not leave one local minimum per region.
     floor_c = 1e-9 * jnp.sum(jnp.where(is_edge, jnp.abs(scale) * elen * elen, 0.0)) / jnp.maximum(jnp.sum(is_edge), 1)
     bucket = jnp.floor(2.0 * jnp.log2(jnp.maximum(cost, floor_c) / floor_c))
-    key = jnp.where(legal, bucket, jnp.inf)
+    bucket = jnp.clip(jnp.nan_to_num(bucket, nan=_N_BUCKETS - 1), 0, _N_BUCKETS - 1).astype(jnp.int32)
     h = (a.astype(jnp.uint32) * jnp.uint32(2654435761)) ^ (b.astype(jnp.uint32) * jnp.uint32(2246822519))
     h = (h ^ (h >> 15)) * jnp.uint32(2654435769)
-    _, _, order = lax.sort((key, h, jnp.arange(m, dtype=jnp.int32)), num_keys=2)
-    rank = jnp.zeros((m,), jnp.int32).at[order].set(jnp.arange(m, dtype=jnp.int32))
-    n_legal = jnp.sum(legal)
-    rank = jnp.where(legal, rank, _INT_MAX)
-    # the eligible edges are the cheapest eighth; among them a random priority (the hash, as in
-    # Luby's independent sets) picks edges two edges apart, many per round
-    eligible = legal & (rank < jnp.maximum(n_legal // 8, 1))
-    _, hperm = lax.sort((jnp.where(eligible, h, jnp.uint32(0xFFFFFFFF)), jnp.arange(m, dtype=jnp.int32)), num_keys=1)
-    prio = jnp.zeros((m,), jnp.int32).at[hperm].set(jnp.arange(m, dtype=jnp.int32))  # unique
-    prio = jnp.where(eligible, prio, _INT_MAX)
+    n_elig = jnp.maximum(jnp.sum(legal) // 8, 1)
+    hist = jax.ops.segment_sum(legal.astype(jnp.int32), bucket, num_segments=_N_BUCKETS)
+    cum = jnp.cumsum(hist)
+    tb = jnp.argmax(cum >= n_elig)
+    # inside the last bucket, the edges with the smallest hashes (a second histogram, of the
+    # hash's top 10 bits) make up the count
+    hb = (h >> 22).astype(jnp.int32)
+    in_tb = legal & (bucket == tb)
+    cum_h = jnp.cumsum(jax.ops.segment_sum(in_tb.astype(jnp.int32), hb, num_segments=1024))
+    th = jnp.argmax(cum_h >= n_elig - (cum[tb] - hist[tb]))
+    eligible = legal & ((bucket < tb) | (in_tb & (hb <= th)))
+    # among them a random priority (the hash, as in Luby's independent sets; unique: its low
+    # bits are the slot) picks edges two edges apart, many per round
+    nbits = max(int(m).bit_length(), 1)
+    prio = (h & jnp.uint32((0xFFFFFFFF << nbits) & 0xFFFFFFFF)) | jnp.arange(m, dtype=jnp.uint32)
     sel = _independent_edges(a, b, is_edge, eligible, prio, nv)
     # link condition: common neighbours of a and b must be exactly the edge's triangles' apexes
     partner = jnp.full((nv,), -1, jnp.int32).at[jnp.where(sel, a, nv)].set(b, mode="drop") \
         .at[jnp.where(sel, b, nv)].set(a, mode="drop")
     owner = jnp.full((nv,), m, jnp.int32).at[jnp.where(sel, a, nv)].set(jnp.arange(m, dtype=jnp.int32), mode="drop") \
         .at[jnp.where(sel, b, nv)].set(jnp.arange(m, dtype=jnp.int32), mode="drop")
-    u = jnp.concatenate([a, b])
-    w = jnp.concatenate([b, a])
-    has = jnp.concatenate([is_edge, is_edge]) & (partner[u] >= 0) & (w != partner[u])
-    ekey = jnp.where(has, owner[u], m)
-    wkey = jnp.where(has, w, _INT_MAX)
-    ekey, wkey = lax.sort((ekey, wkey), num_keys=2)
-    dup = (ekey == jnp.roll(ekey, 1)) & (wkey == jnp.roll(wkey, 1)) & (ekey < m)
-    dup = dup.at[0].set(False)
-    common = jax.ops.segment_sum(dup.astype(jnp.int32), jnp.where(dup, ekey, m), num_segments=m + 1)[:m]
+    common, doubt = _common_neighbours(a, b, is_edge, partner, owner, nv, m)
     # ... and two valence-3 endpoints of an interior edge span a tetrahedron (both triangles on
     # the apexes exist): collapsing would leave two faces back to back
     valence = jnp.zeros((nv,), jnp.int32).at[a].add(is_edge.astype(jnp.int32)).at[b].add(is_edge.astype(jnp.int32))
     tent = interior & (valence[a] == 3) & (valence[b] == 3)
-    ok = sel & (common == count) & ~tent
+    ok = sel & (common == count) & ~tent & ~doubt
     # fold-over: faces keeping one endpoint must not turn by more than ~84 degrees; of the four
     # candidate positions, the cheapest that folds nothing is taken
     fv = faces
@@ -251,7 +292,11 @@ def _round(state, target):
     n_new = jnp.cross(t_new[..., 1, :] - t_new[..., 0, :], t_new[..., 2, :] - t_new[..., 0, :])
     cosang = jnp.sum(n_old * n_new, -1)
     n_old2 = jnp.sum(n_old * n_old, -1)  # a face that is already degenerate cannot fold
-    flip = mv_any[:, None] & (n_old2 > 0) & (cosang <= 0.1 * jnp.sqrt(n_old2 * jnp.sum(n_new * n_new, -1)))
+    n_new2 = jnp.sum(n_new * n_new, -1)
+    # ... nor lose its area to rounding (a merged vertex landing on another vertex, or on the
+    # line through two, leaves a normal of rounding errors and of either sign)
+    eps = jnp.finfo(pos.dtype).eps
+    flip = mv_any[:, None] & (n_old2 > 0) & ((cosang <= 0.1 * jnp.sqrt(n_old2 * n_new2)) | (n_new2 <= eps * n_old2))
     folds = jnp.zeros((m + 1, 4), bool).at[e_of_face].max(flip)[:m]
     costs_ok = jnp.where(folds, jnp.inf, costs)
     best = jnp.argmin(costs_ok, axis=1)
@@ -259,31 +304,48 @@ def _round(state, target):
     # a candidate that folds nothing but costs more than the edge was ranked by is a worse
     # collapse than its turn in the order allows: the edge is refused instead
     veto = jnp.all(folds, axis=1) | (jnp.min(costs_ok, axis=1) > 2.0 * cost + 1e-6 * jnp.abs(scale) * elen * elen)
-    refused = sel & (veto | (common != count) | tent)
-    blocked = blocked.at[jnp.where(refused, a, nv)].set(True, mode="drop") \
-        .at[jnp.where(refused, b, nv)].set(True, mode="drop")
+    refused = sel & (veto | (common != count) | tent | doubt)
+    blocked = blocked | refused
     ok = ok & ~veto
-    # land on the target: keep the cheapest collapses that are needed
-    nfv = jnp.sum(fvalid)
+    # land on the target: when this round would overshoot, keep the cheapest collapses needed
+    # (a sort, run only then)
     removes = jnp.where(interior, 2, 1)
-    need = jnp.maximum(nfv - target, 0)
-    ok_sorted = ok[order]
-    cum = jnp.cumsum(jnp.where(ok_sorted, removes[order], 0))
-    keep_sorted = ok_sorted & (cum - removes[order] < need)
-    ok = jnp.zeros((m,), bool).at[order].set(keep_sorted)
+    need = jnp.maximum(jnp.sum(fvalid) - target, 0)
+
+    def trim(ok):
+        _, order = lax.sort((jnp.where(ok, cost, jnp.inf), jnp.arange(m, dtype=jnp.int32)), num_keys=1)
+        ok_sorted = ok[order]
+        cum_r = jnp.cumsum(jnp.where(ok_sorted, removes[order], 0))
+        return jnp.zeros((m,), bool).at[order].set(ok_sorted & (cum_r - removes[order] < need))
+
+    ok = lax.cond(jnp.sum(jnp.where(ok, removes, 0)) > need, trim, lambda o: o, ok)
     # collapse b into a
     to = jnp.arange(nv, dtype=jnp.int32).at[jnp.where(ok, b, nv)].set(a, mode="drop")
     pos = pos.at[jnp.where(ok, a, nv)].set(target_pos, mode="drop")
     q = q.at[jnp.where(ok, a, nv)].add(q[b], mode="drop")
     vvalid = vvalid.at[jnp.where(ok, b, nv)].set(False, mode="drop")
     on_bnd = on_bnd.at[jnp.where(ok, a, nv)].max(on_bnd[b], mode="drop")
+    old = faces
     faces = to[faces]
-    fvalid = fvalid & (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    alive = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    dying = fvalid & ~alive
+    fvalid = fvalid & alive
+    # a dying face (a, b, w): its edge (b, w) merges into its edge (w, a), the one without b
+    x, y = old, jnp.roll(old, -1, axis=1)
+    gone = to != jnp.arange(nv, dtype=jnp.int32)
+    with_b = gone[x] | gone[y]
+    s_keep = jnp.take_along_axis(fe, jnp.argmax(~with_b, axis=1)[:, None], 1)[:, 0]
+    s_drop = jnp.take_along_axis(fe, jnp.argmax(with_b & (to[x] != to[y]), axis=1)[:, None], 1)[:, 0]
+    redirect = jnp.arange(m, dtype=jnp.int32).at[jnp.where(dying, s_drop, m)].set(s_keep, mode="drop")
+    fe = redirect[fe]
+    e_lo, e_hi = jnp.minimum(to[e_lo], to[e_hi]), jnp.maximum(to[e_lo], to[e_hi])
     moved = jnp.zeros((nv + 1,), bool).at[jnp.where(ok, a, nv)].set(True, mode="drop")
     touched = fvalid & jnp.any(moved[faces], axis=1)
-    blocked = blocked.at[jnp.where(touched[:, None], faces, nv)].set(False, mode="drop")
+    near = jnp.zeros((nv + 1,), bool).at[jnp.where(touched[:, None], faces, nv)].set(True)
+    blocked = blocked & ~near[e_lo] & ~near[e_hi]
     progress = jnp.sum(ok) + jnp.sum(refused)  # a refusal changes the next round's selection
-    return pos, q, faces, fvalid, vvalid, on_bnd, blocked, rounds + 1, progress.astype(jnp.int32)
+    return (pos, q, faces, fvalid, vvalid, on_bnd, blocked, e_lo, e_hi, fe, rounds + 1,
+            progress.astype(jnp.int32))
 
 
 @functools.partial(jax.jit, static_argnames=("max_rounds",))
@@ -298,14 +360,16 @@ def _decimate_core(pos, faces, fvalid, vvalid, target, boundary_weight, *, max_r
     size = jnp.where(size > 0, size, 1.0)
     pos = (pos - centre) / size
     q, on_bnd = _initial_quadrics(pos, faces, fvalid, boundary_weight)
+    e_lo, e_hi, _, _, is_edge, he_slot = _edges(faces, fvalid)
+    e_lo, e_hi = jnp.where(is_edge, e_lo, 0), jnp.where(is_edge, e_hi, 0)
 
     def cond(s):
-        return (jnp.sum(s[3]) > target) & (s[7] < max_rounds) & (s[8] > 0)
+        return (jnp.sum(s[3]) > target) & (s[10] < max_rounds) & (s[11] > 0)
 
-    zero = jnp.zeros((pos.shape[0],), bool)
-    state = (pos, q, faces, fvalid, vvalid, on_bnd, zero, jnp.asarray(0, jnp.int32), jnp.asarray(1, jnp.int32))
+    state = (pos, q, faces, fvalid, vvalid, on_bnd, jnp.zeros(e_lo.shape, bool), e_lo, e_hi, he_slot.reshape(-1, 3),
+             jnp.asarray(0, jnp.int32), jnp.asarray(1, jnp.int32))
     state = lax.while_loop(cond, lambda s: _round(s, target), state)
-    pos, _, faces, fvalid, vvalid, _, _, rounds, _ = state
+    pos, faces, fvalid, vvalid, rounds = state[0], state[2], state[3], state[4], state[10]
     used = jnp.zeros((pos.shape[0] + 1,), bool).at[jnp.where(fvalid[:, None], faces, pos.shape[0])].set(True)
     return pos * size + centre, faces, fvalid, vvalid & used[:-1], rounds
 
