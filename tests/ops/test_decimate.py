@@ -66,13 +66,15 @@ def test_box_returns_to_its_twelve_triangles():
     assert abs(float(mesh_volume(d).value) - 8 * np.prod(HALF)) < 1e-12
 
 
-def test_icosphere_stays_round_and_closed():
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_icosphere_stays_round_and_closed(dtype):
     """1,280 faces -> 10 %: closed, oriented, genus 0; vertices within 5 % of the unit sphere
     (QEM places them slightly outside, where the planes of their faces meet), and the enclosed
     volume closer to the sphere's than that of the 80-face icosphere (the nearest regular
     tessellation below 128 faces, vertices exactly on the sphere: the null)."""
     v, f = icosphere(3)
-    d = decimate(Mesh(jnp.asarray(v), jnp.asarray(f)), ratio=0.1)
+    d = decimate(Mesh(jnp.asarray(v, dtype), jnp.asarray(f)), ratio=0.1)
+    assert d.vertices.dtype == dtype
     t = _topo(d)
     assert t["faces"] in (127, 128) and t["euler"] == 2 and t["boundary_edges"] == 0
     assert t["nonmanifold_edges"] == 0 and t["flipped_edges"] == 0
