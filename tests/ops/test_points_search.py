@@ -164,6 +164,24 @@ def test_knn_far_queries_and_float32():
     assert same >= 0.99 and err < 1e-5
 
 
+@pytest.mark.parametrize("method", ["grid", "brute"])
+def test_knn_float64_distances_that_tie_in_float32(method):
+    """float64 selects on float32-rounded keys, then repairs: rows whose k-th and (k+1)-th keys
+    tie in float32 must still get the exact float64 neighbours. Reference points at distances
+    1 + j 1e-10 from the query (all equal in float32), stored with the farther half first, each
+    half ascending: the first candidates are already in order, so only the tie test can tell
+    that they are the wrong ones."""
+    k = 6
+    s = 1e-10 * np.concatenate([np.arange(20, 40), np.arange(20)])
+    line = np.stack([1.0 + s, np.zeros(40), np.zeros(40)], 1)
+    filler = 5.0 + np.random.default_rng(11).random((3000, 3))  # far away
+    ref = np.concatenate([filler[:1500], line, filler[1500:]])
+    q = np.zeros((4, 3))
+    idx, d2 = knn(ref, q, k, method=method)
+    assert np.array_equal(np.asarray(idx)[0], 1520 + np.arange(k)), np.asarray(idx)[0]
+    assert np.allclose(np.asarray(d2)[0], (1.0 + 1e-10 * np.arange(k)) ** 2, rtol=0, atol=1e-15)
+
+
 @pytest.mark.slow
 def test_jit_vmap():
     rng = np.random.default_rng(5)

@@ -242,15 +242,18 @@ def _select_f64(d, ids, k):
     """
     t = d.shape[1]
     kk = min(k + 1, t)
-    nv, i = lax.top_k(-d.astype(jnp.float32), kk)
+    _, i = lax.top_k(-d.astype(jnp.float32), kk)
     v = jnp.take_along_axis(d, i, axis=1)
     sid = jnp.take_along_axis(ids, i, axis=1)
     v, sid, ordered = _sort_nearly_sorted(v, sid)
-    v, sid = v[:, :k], sid[:, :k]
     if kk == k:  # every candidate was selected
         return v, sid, ordered
-    # a missing k-th (inf): any inf will do
-    return v, sid, ordered & ((nv[:, k] < nv[:, k - 1]) | jnp.isinf(nv[:, k - 1]))
+    # the cut is free of float32 ties when the (k+1)-th key exceeds the k-th; a missing k-th
+    # (inf): any inf will do. The keys are re-rounded from the float64 values, which sort them
+    # too: reading top_k's own values output made XLA:CPU's top_k 5-6x slower (measured at
+    # 20,000 x 128 candidates, k = 10: 264 ms against 46 ms).
+    key = v.astype(jnp.float32)
+    return v[:, :k], sid[:, :k], ordered & ((key[:, k] > key[:, k - 1]) | jnp.isinf(key[:, k - 1]))
 
 
 def _select_finite(d, ids, k):
