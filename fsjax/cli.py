@@ -19,7 +19,8 @@
 
 ``fsjax sfm IMAGE_DIR --out DIR [--intrinsics fx,fy,cx,cy] [--ground-truth cameras.json]``
     structure from motion (:mod:`fsjax.sfm`): ``DIR/report.md``, ``DIR/sparse/*.txt`` (COLMAP
-    text), ``DIR/points.ply``.
+    text), ``DIR/points.ply``. ``IMAGE_DIR`` may be a video file: frames chosen by accumulated
+    rotation (``--rotation-deg``, ``--max-gap``; :mod:`fsjax.sfm.video`, needs the ``video`` extra).
 
 ``tour``, ``run``, ``evolve`` and ``sfm`` keep compiled programs in JAX's persistent compilation
 cache (``fsjax.enable_compile_cache``: the user's cache directory, ``FSJAX_CACHE_DIR``
@@ -269,6 +270,12 @@ def _cmd_sfm(args) -> int:
         intr = [float(v) for v in args.intrinsics.split(",")]
         if len(intr) != 4:
             raise ValueError(f"argument '--intrinsics' must be fx,fy,cx,cy, got {args.intrinsics!r}")
+    from .sfm.video import is_video, run_video
+
+    if is_video(args.image_dir):  # a video: frames chosen by accumulated rotation (fsjax.sfm.video)
+        rec, _ = run_video(args.image_dir, args.out, intrinsics=intr, threshold_deg=args.rotation_deg,
+                           max_gap=args.max_gap or None, n_max=args.max_features, n_octaves=args.octaves, log=print)
+        return 0 if rec.registered.sum() >= 2 else 1
     rec = run_folder(args.image_dir, args.out, intrinsics=intr, ground_truth=args.ground_truth,
                      n_max=args.max_features, n_octaves=args.octaves, log=print)
     return 0 if rec.registered.sum() >= 2 else 1
@@ -325,13 +332,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="output directory (report.md, failures.jsonl, minimised.jsonl)")
     p.set_defaults(func=_cmd_fuzz)
 
-    p = sub.add_parser("sfm", help="structure from motion on a folder of photographs; DIR/report.md, COLMAP text, PLY")
-    p.add_argument("image_dir")
+    p = sub.add_parser("sfm", help="structure from motion on a folder of photographs or a video; DIR/report.md, COLMAP text, PLY")
+    p.add_argument("image_dir", help="folder of .jpg/.png photographs, or a video file (.mp4, .mov, ...)")
     p.add_argument("--out", required=True)
     p.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (pixel centres on integers); default: guessed")
     p.add_argument("--ground-truth", help="cameras.json to score against (as in ../shared/data/sfm)")
     p.add_argument("--max-features", type=int, default=4096, help="keypoint capacity per image")
     p.add_argument("--octaves", type=int, default=5, help="detector octaves (the first at twice the image size)")
+    p.add_argument("--rotation-deg", type=float, default=10.0, help="video: keep a frame when the camera has turned this much")
+    p.add_argument("--max-gap", type=int, default=30, help="video: keep a frame at least every this many frames (0: no limit)")
     p.set_defaults(func=_cmd_sfm)
 
     args = parser.parse_args(argv)
@@ -342,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
         enable_compile_cache()
     try:
         return args.func(args)
-    except (TypeError, ValueError, KeyError, FileNotFoundError) as e:
+    except (TypeError, ValueError, KeyError, FileNotFoundError, ImportError) as e:
         if isinstance(e, KeyError):
             e = str(e)
         print(f"fsjax {args.cmd}: error: {e}", file=sys.stderr)
