@@ -126,9 +126,13 @@ def read_video(path, *, indices=None) -> np.ndarray:
     return np.stack(out)
 
 
-def write_video(path, frames, *, fps: float = 10.0, crf: int = 12) -> Path:
-    """Write ``(N, H, W, 3)`` uint8 RGB frames (even ``H`` and ``W``) as H.264 (``libx264``, constant
-    quality ``crf``: 0 lossless, 12 visually lossless, 23 the encoder's default) in yuv420p."""
+def write_video(path, frames, *, fps: float = 10.0, qp: int = 12) -> Path:
+    """Write ``(N, H, W, 3)`` uint8 RGB frames (even ``H`` and ``W``) as H.264 (``libx264``, yuv420p,
+    constant quantiser ``qp``: 0 lossless, 12 visually lossless; one encoder thread).
+
+    Constant quantiser and one thread make the file a function of the frames: with x264's default
+    rate control (``crf``) the same frames gave different files from run to run in a process that
+    had run JAX computations (seen here; not investigated further)."""
     av = _av("write_video")
     f = np.asarray(frames)
     if f.ndim != 4 or f.shape[-1] != 3 or f.dtype != np.uint8:
@@ -136,6 +140,8 @@ def write_video(path, frames, *, fps: float = 10.0, crf: int = 12) -> Path:
     if f.shape[1] % 2 or f.shape[2] % 2:
         raise ValueError(f"write_video: argument 'frames' must have even height and width (yuv420p), got {f.shape[1:3]}")
     check_positive("write_video", "fps", fps)
+    if isinstance(qp, bool) or int(qp) != qp or not 0 <= int(qp) <= 51:
+        raise ValueError(f"write_video: argument 'qp' must be an int in [0, 51] (H.264 quantiser), got {qp!r}")
     from fractions import Fraction
 
     p = Path(path)
@@ -144,7 +150,8 @@ def write_video(path, frames, *, fps: float = 10.0, crf: int = 12) -> Path:
     try:
         s = c.add_stream("libx264", rate=Fraction(fps).limit_denominator(1000))
         s.width, s.height, s.pix_fmt = f.shape[2], f.shape[1], "yuv420p"
-        s.options = {"crf": str(int(crf))}
+        s.options = {"qp": str(int(qp)), "threads": "1"}
+        s.thread_count = 1
         for im in f:
             for pkt in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(im), format="rgb24")):
                 c.mux(pkt)

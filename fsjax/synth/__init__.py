@@ -47,6 +47,7 @@ from ._structured_light import capture_patterns as capture_patterns
 from ._structured_light import decode_depth as decode_depth
 from ._structured_light import standard_rig as standard_rig
 from ._structured_light import still_life_mm as still_life_mm
+from ._video import orbit_video as orbit_video
 from ._workpiece import PART_KINDS as PART_KINDS
 from ._workpiece import alignment_scene as alignment_scene
 from ._workpiece import render_part as render_part
