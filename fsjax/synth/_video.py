@@ -3,8 +3,8 @@
 :func:`orbit_video` renders ``n_frames`` RGB frames with :func:`fsjax.render.rasterize`: a closed
 room (walls, floor, ceiling; inward-facing box ``[-6, 6] x [0, 6] x [-6, 6]``, y up) and three boxes
 near the centre, every surface textured by multi-scale random cells (value noise without
-interpolation: sharp-cornered patches, so a scale-space detector finds keypoints at several
-scales) evaluated at the world point of each pixel. The camera orbits the centre at ``radius``
+interpolation: sharp-cornered patches of random brightness and tint, so a scale-space detector
+finds keypoints at several scales) evaluated at the world point of each pixel. The camera orbits the centre at ``radius``
 and ``height``, looking at ``(0, 0.6, 0)`` (``fsjax.render.look_at``), its azimuth stepping by
 ``min_step_deg + (max_step_deg - min_step_deg) (1 - cos(2 pi k / n)) / 2`` degrees from frame k
 to k+1: slow at both ends, fast in the middle, so frames chosen by accumulated rotation differ
@@ -32,15 +32,17 @@ def _box(lo, hi, inward: bool):
 
 
 def _texture(p, seed):
-    """(..., 3) colours in [0, 1] at world points ``p`` (..., 3): three scales of random cells."""
+    """(..., 3) colours in [0, 1] at world points ``p`` (..., 3): three scales of random cells, each
+    cell a random brightness (what a grey detector sees) times a random tint in [0.6, 1]."""
     rng = np.random.default_rng(seed)
-    table = rng.uniform(0, 1, (3, 4096, 3))
+    table = rng.uniform(0, 1, (3, 4096, 4))
     out = np.zeros(p.shape[:-1] + (3,))
     for s, (cell, wgt) in enumerate(((0.9, 0.45), (0.3, 0.35), (0.1, 0.2))):
         ijk = np.floor(p / cell).astype(np.int64)
         h = (ijk[..., 0] * 73856093) ^ (ijk[..., 1] * 19349663) ^ (ijk[..., 2] * 83492791)
-        out += wgt * table[s][np.mod(h, 4096)]
-    return out
+        t = table[s][np.mod(h, 4096)]
+        out += wgt * t[..., :1] * (0.6 + 0.4 * t[..., 1:])
+    return out / 0.8
 
 
 def orbit_video(n_frames: int = 40, *, width: int = 192, height: int = 128, fov_x_deg: float = 60.0,
