@@ -57,8 +57,8 @@ def test_consecutive_rotations_match_known_poses(video, rotations):
     true = _angle(d["R_rel"])
     assert true.min() > 0.5 and true.max() < 3.1  # the orbit: 0.6 .. 3 deg per frame
     # an orbit step confounds a small rotation with a sideways translation (bas-relief ambiguity):
-    # most steps are within 0.3 deg, the worst (least parallax) about 1.5 deg at this size
-    assert np.median(err) < 0.3 and err.max() < 2.0, np.round(err, 3)
+    # measured median 0.095, max 0.63 deg at this size (the worst: least parallax)
+    assert np.median(err) < 0.3 and err.max() < 1.25, np.round(err, 3)
     assert np.abs(rot.step_deg - true).mean() < 0.3 and np.abs(rot.step_deg - true).max() < 2.0
 
 
