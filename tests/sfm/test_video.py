@@ -2,7 +2,7 @@
 rendered by fsjax itself along a known orbit (``fsjax.synth._video.orbit_video``: slow, fast, slow),
 written and read back through H.264 (PyAV). The chosen frames' accumulated rotation is checked
 against the known poses, beside the null of every k-th frame; a still video is refused; a missing
-PyAV is named."""
+PyAV is named; the whole command runs on the video."""
 
 from __future__ import annotations
 
@@ -107,3 +107,26 @@ def test_missing_pyav_is_named(monkeypatch, tmp_path):
         read_video(tmp_path / "x.mp4")
     with pytest.raises(ImportError, match="'av'"):
         write_video(tmp_path / "x.mp4", np.zeros((2, 8, 8, 3), np.uint8))
+
+
+@pytest.mark.slow
+def test_cli_on_the_rendered_video(video, tmp_path):
+    # the whole command: chosen frames reconstructed, report lists them with the reason
+    from fsjax.cli import main
+
+    d, path, _ = video
+    K = d["K"]
+    out = tmp_path / "out"
+    code = main(["sfm", str(path), "--out", str(out), "--intrinsics", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
+                 "--rotation-deg", str(THRESHOLD), "--max-features", "1024", "--octaves", "4"])
+    assert code == 0
+    report = (out / "report.md").read_text()
+    assert "## Frames chosen from the video" in report and "rotation since the previous chosen frame" in report
+    chosen = sorted(p.name for p in (out / "frames").iterdir())
+    assert chosen[0] == "frame_000000.png" and len(chosen) >= 6
+    for nm in chosen:
+        assert f"| {nm} | yes" in report or f"| {nm} | no" in report
+    assert (out / "sparse" / "images.txt").exists() and (out / "points.ply").exists()
+    # measured: 8/8 registered
+    n_reg = sum(f"| {nm} | yes" in report for nm in chosen)
+    assert f"Registered **{n_reg}/{len(chosen)}**" in report and n_reg >= len(chosen) - 1
