@@ -182,6 +182,21 @@ def test_knn_float64_distances_that_tie_in_float32(method):
     assert np.allclose(np.asarray(d2)[0], (1.0 + 1e-10 * np.arange(k)) ** 2, rtol=0, atol=1e-15)
 
 
+@pytest.mark.parametrize("method", ["grid", "brute"])
+def test_radius_capacity_cut_on_float64_distances_that_tie_in_float32(method):
+    """The radius search's capacity cut, on the same line of points tied in float32: the kept
+    ``capacity`` must be the exact float64 nearest (the grid path selects on float32 keys and
+    rescans the rows whose cut is tied)."""
+    cap = 6
+    s = 1e-10 * np.concatenate([np.arange(20, 40), np.arange(20)])
+    line = np.stack([1.0 + s, np.zeros(40), np.zeros(40)], 1)
+    filler = 5.0 + np.random.default_rng(11).random((3000, 3))
+    ref = np.concatenate([filler[:1500], line, filler[1500:]])
+    idx, d2, count, trunc = radius_search(ref, np.zeros((4, 3)), 1.5, cap, method=method)
+    assert int(count[0]) == 40 and bool(trunc[0])
+    assert np.array_equal(np.asarray(idx)[0], 1520 + np.arange(cap)), np.asarray(idx)[0]
+
+
 @pytest.mark.slow
 def test_jit_vmap():
     rng = np.random.default_rng(5)

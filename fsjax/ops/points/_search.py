@@ -501,13 +501,15 @@ def _grid(ref, valid, h) -> GridIndex:
     return GridIndex(ref, valid, lo, h, dims, key[order], ref[order], order, cstart=cstart)
 
 
-def _scan_cells(spts, q, start, length, kk, S, r2=None):
+def _scan_cells(spts, q, start, length, kk, S, r2=None, exact=False):
     """Visit every candidate of the runs ``(start, length)`` of a batch of queries.
 
     Candidates are taken ``S`` per query and step; a ``while_loop`` steps until the
     longest candidate list of the batch is exhausted. Returns the ``kk`` nearest
     (within ``r2`` if given): ``(dist2 (B, kk), sorted positions (B, kk), count (B,), ok (B,))``;
     ``ok`` False: a float64 selection was ambiguous (see :func:`_select_f64`), not certified.
+    ``exact`` (radius search only): select by arg-min passes, never ambiguous (slow: a pass per
+    neighbour found), for the rows a first scan flagged.
     """
     b, nr = start.shape
     cum = jnp.cumsum(length, axis=1)
@@ -533,11 +535,11 @@ def _scan_cells(spts, q, start, length, kk, S, r2=None):
         keep = ok if r2 is None else ok & (d2 <= r2)
         d2 = jnp.where(keep, d2, inf)
         dd, pp = jnp.concatenate([bd, d2], 1), jnp.concatenate([bi, pos], 1)
-        if r2 is None:
+        if exact:
+            bd, bi = _select_finite(dd, pp, kk)
+        else:
             bd, bi, okb = _select_flag(dd, pp, kk)
             fine = fine if okb is None else fine & okb
-        else:
-            bd, bi = _select_finite(dd, pp, kk)
         return j + 1, bd, bi, cnt + jnp.sum(keep, axis=1, dtype=jnp.int32), fine
 
     init = (jnp.int32(0), jnp.full((b, kk), inf), jnp.zeros((b, kk), jnp.int32), jnp.zeros(b, jnp.int32),
@@ -677,12 +679,15 @@ def _grid_knn(ref, valid, qry, k):
 def _query_grid_radius(g: GridIndex, qry, r, capacity):
     S = 64  # candidates per step: the count in 27 cells of side r does not scale with the capacity
 
-    def one_pass(q):
+    def one_pass(q, exact=False):
         start, length, _ = g.runs(q, 1)
-        d2, pos, cnt, _ = _scan_cells(g.spts, q, start, length, capacity, S, r * r)
-        return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cnt
+        d2, pos, cnt, ok = _scan_cells(g.spts, q, start, length, capacity, S, r * r, exact=exact)
+        return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cnt, ok
 
-    d2, idx, cnt = _in_cell_order(g, qry, one_pass, min(_B1, qry.shape[0]))
+    # a top-k selection per step (lax.top_k; arg-min passes, one per neighbour found, took ~10x
+    # longer); float64 rows whose capacity cut ties in float32 are scanned again exactly
+    d2, idx, cnt, ok = _in_cell_order(g, qry, one_pass, min(_B1, qry.shape[0]))
+    d2, idx = _redo(~ok, min(_B2, qry.shape[0]), lambda sel: one_pass(qry[sel], exact=True)[:2], (d2, idx))
     return idx, d2, cnt
 
 
