@@ -313,7 +313,7 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
                  max_pairs: int | None = None, chunk: int = 64,
                  lr_means: float = 1.6e-3, lr_means_final: float = 1.6e-5, lr_scales: float = 5e-3,
                  lr_quats: float = 1e-3, lr_opacity: float = 0.05, lr_colors: float = 2.5e-3,
-                 progress: bool = True, dtype=jnp.float32) -> SplatTrainResult:
+                 progress: bool = True, dtype=jnp.float32, init: Gaussians | None = None) -> SplatTrainResult:
     """Train splats on ``data.train`` views (see the module docstring for the method).
 
     Args:
@@ -341,6 +341,9 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
         lr_*: Adam learning rates (``lr_means`` in units of the scene extent, decayed
             exponentially to ``lr_means_final``).
         progress: show a tqdm bar.
+        init: initial splats (e.g. :func:`fsjax.sfm.splat.init_from_points` of an SfM cloud) instead of
+            :func:`init_from_mesh` of ``data.points``; its slot count is the capacity (``n_init`` and
+            ``max_splats`` are then unused).
 
     Returns:
         :class:`SplatTrainResult`.
@@ -353,8 +356,13 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     if densify_until is None:
         densify_until = iterations // 2
     kinit, kview, ksplit = jax.random.split(key, 3)
-    g = init_from_mesh(kinit, data, n_init, max_splats, dtype=dtype)
-    N = max_splats
+    if init is None:
+        g = init_from_mesh(kinit, data, n_init, max_splats, dtype=dtype)
+    else:
+        if not isinstance(init, Gaussians) or init.batch_shape or init.colors.shape[-2] != 1:
+            raise ValueError("train_splats: argument 'init' must be one set of Gaussians with degree-0 colours")
+        g = jax.tree_util.tree_map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a, init)
+    N = g.means.shape[0]
     y = {f: getattr(g, f) for f in _FIELDS}
     y["uv_offset"] = jnp.zeros((N, 2), dtype)
     valid = np.asarray(g.valid).copy()

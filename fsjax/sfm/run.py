@@ -45,7 +45,8 @@ def evaluate(rec: Reconstruction, gt: dict) -> dict:
 def run_folder(image_dir, out_dir, *, intrinsics=None, ground_truth=None, n_max: int = 4096, n_octaves: int = 5,
                seed: int = 0, log=print) -> Reconstruction:
     """Reconstruct the photographs of ``image_dir``; write ``sparse/{cameras,images,points3D}.txt``
-    (COLMAP text), ``points.ply`` (coloured sparse points), ``report.md`` and ``cameras.png`` to ``out_dir``.
+    (COLMAP text), ``points.ply`` (coloured sparse points), ``report.md``, ``cameras.png`` and ``source.json``
+    (the photographs' folder, read by ``fsjax splat``) to ``out_dir``.
 
     ``intrinsics``: ``(fx, fy, cx, cy)`` in pixels (centres on integers); ``None`` guesses
     ``f = 1.2 max(W, H)`` (stated in the report). ``ground_truth``: an optional ``cameras.json`` to score against.
@@ -58,6 +59,7 @@ def run_folder(image_dir, out_dir, *, intrinsics=None, ground_truth=None, n_max:
     rec = reconstruct(imgs, K, names=names, n_max=n_max, n_octaves=n_octaves, seed=seed, log=log)
     out = Path(out_dir)
     write_colmap_text(rec, out / "sparse")
+    (out / "source.json").write_text(json.dumps({"image_dir": str(Path(image_dir).resolve())}) + "\n")  # for fsjax splat
     write_ply_points(out / "points.ply", rec.points, rec.colors)
     ev = None
     if ground_truth is not None:
