@@ -218,7 +218,8 @@ def evaluate_views(g: Gaussians, data: MultiViewData, views=None, *, tile_size: 
             "ssim_per_view": ss, "overflow": int(np.sum(ov)), "pairs": pairs, "buffer": buf, "renders": renders}
 
 
-def _figure(path, photos, rows, labels):
+def _figure(path, photos, rows):
+    """One row per view: the photo, then each entry of ``rows`` (lists of images), side by side."""
     from PIL import Image
 
     tiles = []
@@ -280,7 +281,7 @@ def splat_from_sfm(sfm_dir, out_dir, *, image_dir=None, width: int = 192, holdou
     vcam = Camera(jnp.asarray(v.K_full[vi]), width=W0, height=H0, R=d.cameras.R[vi], t=d.cameras.t[vi])
     write_viewer_page(files["viewer"], files["splat"], vcam, near=0.01 * d.extent)
     photos = [np.asarray(d.images[i]) for i in d.test]
-    _figure(files["figure"], photos, [null["renders"], tr["renders"]], ["photo", "null", "trained"])
+    _figure(files["figure"], photos, [null["renders"], tr["renders"]])
     summary = {"null": {k: x for k, x in null.items() if k != "renders"},
                "null_opaque": {k: x for k, x in null_op.items() if k != "renders"},
                "trained": {k: x for k, x in tr.items() if k != "renders"},
