@@ -288,7 +288,8 @@ def splat_from_sfm(sfm_dir, out_dir, *, image_dir=None, width: int = 192, holdou
                "trained_train_views": {k: x for k, x in trv.items() if k != "renders"},
                "beats_null": beats, "steps": iterations, "train_seconds": t_train,
                "step_seconds": res.step_seconds, "compile_seconds": res.compile_seconds, "n_splats": n,
-               "n_points": len(xyz), "size": [W, H], "names": v.names, "held_out": [v.names[i] for i in d.test],
+               "n_points": len(xyz), "size": [W, H], "names": v.names,
+               "held_out": [v.names[i] for i in d.test], "holdout_every": holdout_every,
                "max_training_overflow": int(np.max(res.overflow)) if len(res.overflow) else 0}
     _write_report(files["report"], summary, sfm_dir, v, res)
     (out / "metrics.json").write_text(json.dumps(summary, indent=1))
@@ -301,7 +302,7 @@ def _write_report(path, s, sfm_dir, v, res):
     W, H = s["size"]
     L = [f"# fsjax splat: {Path(sfm_dir).name}", "",
          f"{len(s['names'])} photographs from `{v.image_dir}` at {W} x {H} with the cameras of the COLMAP model in "
-         f"`{sfm_dir}`; held out (every 4th): {', '.join(s['held_out'])}. {s['n_points']} sparse points "
+         f"`{sfm_dir}`; held out (every {s['holdout_every']}th): {', '.join(s['held_out'])}. {s['n_points']} sparse points "
          f"initialise {s['n_points']} splats.", "",
          f"Trained **{s['steps']} steps** in **{s['train_seconds']:.1f} s** (median step {s['step_seconds']:.3f} s, "
          f"compile {s['compile_seconds']:.1f} s), {s['n_splats']} splats at the end; largest pair overflow during "
