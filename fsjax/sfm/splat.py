@@ -245,6 +245,9 @@ def splat_from_sfm(sfm_dir, out_dir, *, image_dir=None, width: int = 192, holdou
     out.mkdir(parents=True, exist_ok=True)
     v = load_sfm_views(sfm_dir, image_dir, width=width, holdout_every=holdout_every)
     d = v.data
+    if len(d.test) == 0:
+        raise ValueError(f"splat_from_sfm: {len(v.names)} registered images hold none out (every {holdout_every}th); "
+                         f"need >= {holdout_every}")
     xyz, rgb = d.points
     if len(xyz) > max_splats:
         raise ValueError(f"splat_from_sfm: argument 'max_splats' ({max_splats}) is below the {len(xyz)} sparse points")

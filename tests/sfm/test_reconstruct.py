@@ -121,6 +121,11 @@ def test_cli_sfm_writes_report(tmp_path):
     rep = (tmp_path / "out" / "report.md").read_text()
     assert "Registered **2/2** images" in rep and "| features |" in rep
     assert (tmp_path / "out" / "sparse" / "points3D.txt").exists() and (tmp_path / "out" / "points.ply").exists()
+    # the photographs' folder is recorded for `fsjax splat SFM_DIR`, which finds them through it
+    from fsjax.sfm.splat import load_sfm_views
+
+    v = load_sfm_views(tmp_path / "out", width=96)
+    assert v.image_dir == img_dir.resolve() and v.names == list(NAMES[:2]) and v.data.images.shape == (2, 64, 96, 3)
     with pytest.raises(SystemExit):
         main(["sfm"])
     assert main(["sfm", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o2")]) == 2
