@@ -3,7 +3,8 @@
 Input: a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``, read by
 :func:`fsjax.sfm.export.read_colmap_text`), in ``SFM_DIR/sparse`` (as ``fsjax sfm`` writes it) or
 in ``SFM_DIR`` itself, and the photographs it was made from (``--images``, else ``SFM_DIR/images``,
-else the folder ``fsjax sfm`` recorded in ``SFM_DIR/source.json``).
+else ``SFM_DIR/frames`` (the frames ``fsjax sfm VIDEO`` chose), else the folder ``fsjax sfm`` recorded
+in ``SFM_DIR/source.json``).
 
 Method:
 
@@ -78,6 +79,8 @@ def _image_dir(sfm_dir: Path, image_dir) -> Path:
         d = Path(image_dir)
     elif (sfm_dir / "images").is_dir():
         d = sfm_dir / "images"
+    elif (sfm_dir / "frames").is_dir():  # `fsjax sfm VIDEO` writes its chosen frames there
+        d = sfm_dir / "frames"
     elif (sfm_dir / "source.json").exists():
         d = Path(json.loads((sfm_dir / "source.json").read_text())["image_dir"])
     else:

@@ -128,6 +128,13 @@ def test_load_sfm_views_cameras_and_init(run, tmp_path):
     assert np.all(np.isfinite(np.asarray(g.log_scales))) and float(np.ptp(np.asarray(g.log_scales)[:250, 0])) > 0
     with pytest.raises(ValueError, match="max_splats"):
         init_from_points(xyz, rgb, 100)
+    # the layout of `fsjax sfm VIDEO`: the chosen frames in SFM_DIR/frames
+    import shutil
+
+    shutil.copytree(root / "sfm" / "sparse", tmp_path / "vid" / "sparse")
+    shutil.copytree(root / "sfm" / "images", tmp_path / "vid" / "frames")
+    vv = load_sfm_views(tmp_path / "vid", width=32)
+    assert vv.image_dir == tmp_path / "vid" / "frames" and np.array_equal(np.asarray(vv.data.images), np.asarray(d.images))
     with pytest.raises(FileNotFoundError, match="--images"):
         load_sfm_views(root / "sfm" / "sparse")  # a bare model folder: no photographs found
     with pytest.raises(FileNotFoundError, match="COLMAP"):
