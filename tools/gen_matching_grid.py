@@ -27,11 +27,25 @@ import numpy as np  # noqa: E402
 
 from fsjax.synth import (  # noqa: E402
     MATCH3D_CELL_TOL,
+    MATCH3D_FM_CELL_TOL,
+    MATCH3D_FM_METHODS,
+    MATCH3D_FM_NOT_YET,
     MATCH3D_METHODS,
     MATCH3D_NOT_YET,
     MATCH3D_STRUCTURES,
+    run_fm_cell,
     run_grid_cell,
 )
+
+# the main table's columns: the base grid, then the Fourier-Mellin columns (fsjax/synth/_match3d_fm.py)
+COLUMNS = MATCH3D_METHODS + MATCH3D_FM_METHODS
+NOT_YET = {**MATCH3D_NOT_YET, **MATCH3D_FM_NOT_YET}
+CELL_TOL = {**MATCH3D_CELL_TOL, **MATCH3D_FM_CELL_TOL}
+DEG = ("moments_pose3d", "lm_rotation_z3d") + MATCH3D_FM_METHODS
+
+
+def run_cell(s, m, **kw):
+    return (run_fm_cell if m in MATCH3D_FM_METHODS else run_grid_cell)(s, m, **kw)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,6 +59,9 @@ SELECTION = [
     ("position and size", "lm_translation_scale3d (from ncc3d)", "scale to <1 %; LM on intensities"),
     ("a small rotation about z after a coarse find (+-3 degrees)", "lm_rotation_z3d (from ncc3d)",
      "angle and position by LM on intensities; tricubic sampling"),
+    ("any turn about z and a scale, a whole volume (clutter tolerated)", "fourier_mellin_z3d",
+     "0.1-1.6 degrees, scale to ~2 % (one log-radius bin is 3.2 %); angle modulo 180 resolved by a translation "
+     "check; then lm_rotation_z3d"),
     ("any rotation, the object alone", "moments_pose3d", "closed form; refuses clutter, symmetric or "
      "skew-free objects (valid=False)"),
 ]
@@ -57,10 +74,11 @@ def main() -> None:
     ap.add_argument("--clean", action="store_true", help="voxel cells without noise and clutter; print, write nothing")
     args = ap.parse_args()
     if args.clean:
-        for m in MATCH3D_METHODS:
-            res = [run_grid_cell("voxel", m, seed=k, clean=True) for k in range(args.seeds)]
+        for m in COLUMNS:
+            res = [run_cell("voxel", m, seed=k, clean=True) for k in range(args.seeds)]
             e = [r["error"] for r in res]
-            extra = "".join(f"  {key} mean {np.mean([r[key] for r in res]):.4f}" for key in ("scale_error", "centre_error")
+            extra = "".join(f"  {key} mean {np.mean([r[key] for r in res]):.4f}" for key in ("scale_error", "centre_error",
+                                                                                              "start_error")
                             if key in res[0])
             print(f"voxel clean {m:24s} error mean {np.mean(e):.4f} min {np.min(e):.4f} max {np.max(e):.4f}{extra}",
                   flush=True)
@@ -68,11 +86,11 @@ def main() -> None:
     load0 = os.getloadavg()[0]
     rows = {}
     for s in MATCH3D_STRUCTURES:
-        for m in MATCH3D_METHODS:
-            if (s, m) in MATCH3D_NOT_YET:
+        for m in COLUMNS:
+            if (s, m) in NOT_YET:
                 continue
-            res = [run_grid_cell(s, m, seed=k, timing=True) for k in range(args.seeds)]
-            closed = [not run_grid_cell(s, m, seed=k, with_object=False)["valid"] for k in range(args.seeds)]
+            res = [run_cell(s, m, seed=k, timing=True) for k in range(args.seeds)]
+            closed = [not run_cell(s, m, seed=k, with_object=False)["valid"] for k in range(args.seeds)]
             rows[(s, m)] = (res, closed)
             e = [r["error"] for r in res]
             print(f"{s:8s} {m:24s} error mean {np.mean(e):.4f} max {np.max(e):.4f}  null {np.mean([r['null'] for r in res]):.2f}"
@@ -94,22 +112,26 @@ def main() -> None:
          "Per cell: **error** (voxels: recovered vs true template centre; degrees for `moments_pose3d`), "
          "**null** (the scene's centre of mass; the identity rotation; for `lm_rotation_z3d` the scene is turned by "
          "+-3 degrees about z and the start is angle 0), **closed** (the same scene without "
-         "the object gives `valid=False`), and the method's time: first call (trace + compile + run) / second "
-         "call (run only). `tests/ops/test_match3d.py::test_grid_cell` asserts each cell against the "
-         "tolerance shown.", "",
+         "the object gives `valid=False`). The Fourier-Mellin columns (`fsjax/synth/_match3d_fm.py`): the bunny "
+         "turned by a random angle in [-180, 180) degrees about z and moved, among the same clutter and noise; "
+         "the template is the unturned bunny in a volume of the scene's size; `+lm_rotation_z3d` moves that pose "
+         "onto the 24^3 template box and refines it (\"FM start\": the Fourier-Mellin error it starts from). "
+         "Every cell: the method's time: first call (trace + compile + run) / second "
+         "call (run only). `tests/ops/test_match3d.py::test_grid_cell` and "
+         "`tests/ops/test_match3d_fm.py::test_fm_grid_cell` assert each cell against the tolerance shown.", "",
          f"Machine: {platform.machine()}, {os.cpu_count()} cores, load {load0:.1f} -> {load1:.1f} during the run; "
          f"jax {jax.__version__}; float64; {args.seeds} scene(s) per cell "
          f"({time.strftime('%Y-%m-%d', time.gmtime())}).", ""]
-    head = "| structure | " + " | ".join(f"`{m}`" for m in MATCH3D_METHODS) + " |"
-    L += [head, "|---" * (len(MATCH3D_METHODS) + 1) + "|"]
+    head = "| structure | " + " | ".join(f"`{m}`" for m in COLUMNS) + " |"
+    L += [head, "|---" * (len(COLUMNS) + 1) + "|"]
     for s in MATCH3D_STRUCTURES:
         cells = []
-        for m in MATCH3D_METHODS:
-            if (s, m) in MATCH3D_NOT_YET:
-                cells.append(MATCH3D_NOT_YET[(s, m)])
+        for m in COLUMNS:
+            if (s, m) in NOT_YET:
+                cells.append(NOT_YET[(s, m)])
                 continue
             res, closed = rows[(s, m)]
-            unit = "deg" if m in ("moments_pose3d", "lm_rotation_z3d") else "vox"
+            unit = "deg" if m in DEG else "vox"
             e = [r["error"] for r in res]
             err = f"{np.mean(e):.3f}" + (f" (max {np.max(e):.3f})" if len(e) > 1 else "")
             extra = ""
@@ -117,7 +139,9 @@ def main() -> None:
                 extra = f"; scale error {np.mean([r['scale_error'] for r in res]):.4f}"
             if "centre_error" in res[0]:
                 extra = f"; centre {np.mean([r['centre_error'] for r in res]):.3f} vox"
-            cells.append(f"**{err} {unit}** (tol {MATCH3D_CELL_TOL[(s, m)]}){extra}; null "
+            if "start_error" in res[0]:
+                extra += f"; FM start {np.mean([r['start_error'] for r in res]):.3f} deg"
+            cells.append(f"**{err} {unit}** (tol {CELL_TOL[(s, m)]}){extra}; null "
                          f"{np.mean([r['null'] for r in res]):.2f}; closed {'yes' if all(closed) else 'NO'}; "
                          f"{res[0]['time_first_s']:.2f} s / {res[0]['time_s']:.3f} s")
         L.append(f"| {s} | " + " | ".join(cells) + " |")
@@ -126,7 +150,7 @@ def main() -> None:
     L += [f"| {a} | `{b}` | {c} |" for a, b, c in SELECTION]
     L += ["", "## Not yet (issue 17)", "",
           "Methods: shape-based 3-D (gradient directions), chamfer (exact EDT), generalised Hough 3-D, "
-          "curvature / shape-index matching, Fourier-Mellin about z (so `lm_rotation_z3d` starts from angle 0 here), "
+          "curvature / shape-index matching, "
           "parametric Hough (planes, spheres), spherical-harmonic descriptor, Harris-3D / spin images / SHOT "
           "+ RANSAC; an NCC pyramid. Structures: depth maps (partial views) and Gaussians (footprint splat). "
           "Cross-structure registration (`register_cross`, `fuse_to_voxel`). The existing ICP variants "

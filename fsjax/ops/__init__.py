@@ -72,3 +72,4 @@ from .match3d._transforms import *  # noqa: F403
 from .match3d._fft3d import *  # noqa: F403
 from .match3d._refine3d import *  # noqa: F403
 from .match3d._pose3d import *  # noqa: F403
+from .match3d._fmellin3d import *  # noqa: F403
