@@ -27,25 +27,25 @@ import numpy as np  # noqa: E402
 
 from fsjax.synth import (  # noqa: E402
     MATCH3D_CELL_TOL,
-    MATCH3D_FM_CELL_TOL,
-    MATCH3D_FM_METHODS,
-    MATCH3D_FM_NOT_YET,
     MATCH3D_METHODS,
+    MATCH3D_MORE_CELL_TOL,
+    MATCH3D_MORE_METHODS,
+    MATCH3D_MORE_NOT_YET,
     MATCH3D_NOT_YET,
     MATCH3D_STRUCTURES,
-    run_fm_cell,
     run_grid_cell,
+    run_more_cell,
 )
 
-# the main table's columns: the base grid, then the Fourier-Mellin columns (fsjax/synth/_match3d_fm.py)
-COLUMNS = MATCH3D_METHODS + MATCH3D_FM_METHODS
-NOT_YET = {**MATCH3D_NOT_YET, **MATCH3D_FM_NOT_YET}
-CELL_TOL = {**MATCH3D_CELL_TOL, **MATCH3D_FM_CELL_TOL}
-DEG = ("moments_pose3d", "lm_rotation_z3d") + MATCH3D_FM_METHODS
+# the main table's columns: the base grid, then the Fourier-Mellin and chamfer columns (fsjax/synth/_match3d_more.py)
+COLUMNS = MATCH3D_METHODS + MATCH3D_MORE_METHODS
+NOT_YET = {**MATCH3D_NOT_YET, **MATCH3D_MORE_NOT_YET}
+CELL_TOL = {**MATCH3D_CELL_TOL, **MATCH3D_MORE_CELL_TOL}
+DEG = ("moments_pose3d", "lm_rotation_z3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d")
 
 
 def run_cell(s, m, **kw):
-    return (run_fm_cell if m in MATCH3D_FM_METHODS else run_grid_cell)(s, m, **kw)
+    return (run_more_cell if m in MATCH3D_MORE_METHODS else run_grid_cell)(s, m, **kw)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -62,6 +62,8 @@ SELECTION = [
     ("any turn about z and a scale, a whole volume (clutter tolerated)", "fourier_mellin_z3d",
      "0.1-1.6 degrees, scale to ~2 % (one log-radius bin is 3.2 %); angle modulo 180 resolved by a translation "
      "check; then lm_rotation_z3d"),
+    ("a template by its shape (occupancy), not its intensities", "chamfer3d",
+     "exact EDT of the scene's occupancy, every placement by one FFT; needs a level that makes the occupancy alike"),
     ("any rotation, the object alone", "moments_pose3d", "closed form; refuses clutter, symmetric or "
      "skew-free objects (valid=False)"),
 ]
@@ -112,13 +114,14 @@ def main() -> None:
          "Per cell: **error** (voxels: recovered vs true template centre; degrees for `moments_pose3d`), "
          "**null** (the scene's centre of mass; the identity rotation; for `lm_rotation_z3d` the scene is turned by "
          "+-3 degrees about z and the start is angle 0), **closed** (the same scene without "
-         "the object gives `valid=False`). The Fourier-Mellin columns (`fsjax/synth/_match3d_fm.py`): the bunny "
+         "the object gives `valid=False`). The Fourier-Mellin columns (`fsjax/synth/_match3d_more.py`): the bunny "
          "turned by a random angle in [-180, 180) degrees about z and moved, among the same clutter and noise; "
          "the template is the unturned bunny in a volume of the scene's size; `+lm_rotation_z3d` moves that pose "
          "onto the 24^3 template box and refines it (\"FM start\": the Fourier-Mellin error it starts from). "
+         "`chamfer3d`: the scenes of the `ncc3d` column, occupancy at 0.3 of the template's peak. "
          "Every cell: the method's time: first call (trace + compile + run) / second "
          "call (run only). `tests/ops/test_match3d.py::test_grid_cell` and "
-         "`tests/ops/test_match3d_fm.py::test_fm_grid_cell` assert each cell against the tolerance shown.", "",
+         "`tests/ops/test_match3d_more.py::test_fm_grid_cell` assert each cell against the tolerance shown.", "",
          f"Machine: {platform.machine()}, {os.cpu_count()} cores, load {load0:.1f} -> {load1:.1f} during the run; "
          f"jax {jax.__version__}; float64; {args.seeds} scene(s) per cell "
          f"({time.strftime('%Y-%m-%d', time.gmtime())}).", ""]
@@ -150,7 +153,7 @@ def main() -> None:
     L += [f"| {a} | `{b}` | {c} |" for a, b, c in SELECTION]
     L += ["", "## Not yet (issue 17)", "",
           "Methods: shape-based 3-D (gradient directions), chamfer (exact EDT), generalised Hough 3-D, "
-          "curvature / shape-index matching, "
+          "curvature / shape-index matching, chamfer with rotation (`chamfer3d` is translation only), "
           "parametric Hough (planes, spheres), spherical-harmonic descriptor, Harris-3D / spin images / SHOT "
           "+ RANSAC; an NCC pyramid. Structures: depth maps (partial views) and Gaussians (footprint splat). "
           "Cross-structure registration (`register_cross`, `fuse_to_voxel`). The existing ICP variants "

@@ -25,10 +25,10 @@ from ._match3d import match3d_object as match3d_object
 from ._match3d import match3d_scene as match3d_scene
 from ._match3d import rotation_zyx as rotation_zyx
 from ._match3d import run_grid_cell as run_grid_cell
-from ._match3d_fm import MATCH3D_FM_CELL_TOL as MATCH3D_FM_CELL_TOL
-from ._match3d_fm import MATCH3D_FM_METHODS as MATCH3D_FM_METHODS
-from ._match3d_fm import MATCH3D_FM_NOT_YET as MATCH3D_FM_NOT_YET
-from ._match3d_fm import run_fm_cell as run_fm_cell
+from ._match3d_more import MATCH3D_MORE_CELL_TOL as MATCH3D_MORE_CELL_TOL
+from ._match3d_more import MATCH3D_MORE_METHODS as MATCH3D_MORE_METHODS
+from ._match3d_more import MATCH3D_MORE_NOT_YET as MATCH3D_MORE_NOT_YET
+from ._match3d_more import run_more_cell as run_more_cell
 from ._multiview import bundle_scene as bundle_scene
 from ._particles import particle_scene as particle_scene
 from ._phantom import CT_MATERIALS as CT_MATERIALS
