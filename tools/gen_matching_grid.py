@@ -111,7 +111,7 @@ def main() -> None:
          "of 1 % of the peak on voxel scenes. Rows: the form of scene and template; points and meshes are "
          "brought onto the grid by `fsjax.ops.to_voxel` (mesh: 20,000 surface samples, independent of the "
          "template's) and smoothed by `gaussian3d(sigma=1)`.", "",
-         "Per cell: **error** (voxels: recovered vs true template centre; degrees for `moments_pose3d`), "
+         "Per cell: **error** (voxels: recovered vs true template centre; degrees for the rotation columns), "
          "**null** (the scene's centre of mass; the identity rotation; for `lm_rotation_z3d` the scene is turned by "
          "+-3 degrees about z and the start is angle 0), **closed** (the same scene without "
          "the object gives `valid=False`). The Fourier-Mellin columns (`fsjax/synth/_match3d_more.py`): the bunny "
@@ -121,7 +121,7 @@ def main() -> None:
          "`chamfer3d`: the scenes of the `ncc3d` column, occupancy at 0.3 of the template's peak. "
          "Every cell: the method's time: first call (trace + compile + run) / second "
          "call (run only). `tests/ops/test_match3d.py::test_grid_cell` and "
-         "`tests/ops/test_match3d_more.py::test_fm_grid_cell` assert each cell against the tolerance shown.", "",
+         "`tests/ops/test_match3d_fm.py::test_fm_grid_cell` assert each cell against the tolerance shown.", "",
          f"Machine: {platform.machine()}, {os.cpu_count()} cores, load {load0:.1f} -> {load1:.1f} during the run; "
          f"jax {jax.__version__}; float64; {args.seeds} scene(s) per cell "
          f"({time.strftime('%Y-%m-%d', time.gmtime())}).", ""]
@@ -152,7 +152,7 @@ def main() -> None:
           "| situation | method | why / limits |", "|---|---|---|"]
     L += [f"| {a} | `{b}` | {c} |" for a, b, c in SELECTION]
     L += ["", "## Not yet (issue 17)", "",
-          "Methods: shape-based 3-D (gradient directions), chamfer (exact EDT), generalised Hough 3-D, "
+          "Methods: shape-based 3-D (gradient directions), generalised Hough 3-D, "
           "curvature / shape-index matching, chamfer with rotation (`chamfer3d` is translation only), "
           "parametric Hough (planes, spheres), spherical-harmonic descriptor, Harris-3D / spin images / SHOT "
           "+ RANSAC; an NCC pyramid. Structures: depth maps (partial views) and Gaussians (footprint splat). "
