@@ -350,9 +350,11 @@ def markdown(rows, info, load0, load1, repeats) -> str:
     span = (f"{min(ratios.values()):.2f}x to {max(ratios.values()):.2f}x cKDTree's time" if ratios else "-")
     verdict = "exact in every row (exact = 1.0000)" if exact_all else "NOT exact in every row (see the exact column)"
     L += [f"Reading the table: fsjax is {verdict}; its time ranges from {span} in these runs. Its memory stays "
-          "O(N k): the XLA buffers are the outputs plus per-batch scratch, never an N x N matrix. Its time "
-          "goes into the arg-min selection passes over the candidates of each query's 27 cells (XLA's CPU "
-          "sort/top_k are slower still) and the grid build, repeated in every call.", "", END]
+          "O(N k): the XLA buffers are the outputs plus per-batch scratch, never an N x N matrix (the "
+          "memory columns show '-' when the run was made with --no-mem). Its time goes into the top-k "
+          "selection over the candidates of each query's 27 cells (float32 `lax.top_k`; float64 selects on "
+          "float32-rounded keys and repairs the order exactly), the fallback passes for the queries the first "
+          "pass cannot certify, and the grid build, repeated in every call.", "", END]
     return "\n".join(L)
 
 
