@@ -228,6 +228,11 @@ def write_report(rec, out_dir, *, title: str = "fsjax sfm", evaluation: dict | N
          f"reprojection RMS **{rec.rms_px:.3f} px** (all kept observations).", "",
          f"Intrinsics: fx {rec.K[0, 0]:.2f}, fy {rec.K[1, 1]:.2f}, cx {rec.K[0, 2]:.2f}, cy {rec.K[1, 2]:.2f} "
          f"(pixel centres on integers), image {rec.size[0]} x {rec.size[1]}.", ""]
+    fi = getattr(rec, "focal", None)
+    if fi:
+        L += [f"No intrinsics given: focal length **{rec.K[0, 0]:.2f} px** (guess {fi['guess_px']:.1f} px = "
+              f"1.2 max(W, H)); found by {fi.get('method', 'nothing: the guess was kept')}"
+              + (f"; {fi['note']}" if fi.get("note") else "") + ".", ""]
     if png:
         L += [f"![cameras and points]({png.name})", ""]
     L += ["## Time per stage", "", "| stage | s |", "|---|---|"]

@@ -50,6 +50,7 @@ from ..fit.twoview import relative_pose
 from ..types.results import reason_code
 from .bundle import bundle_adjust_masked
 from .features import detect_and_describe
+from .focal import estimate_focal
 from .matching import match_pairs
 
 __all__ = ["Reconstruction", "reconstruct", "grey_image"]
@@ -74,6 +75,7 @@ class Reconstruction:
     times_s: dict[str, float] = field(default_factory=dict)
     rms_px: float = float("nan")
     registration_order: list[int] = field(default_factory=list)
+    focal: dict | None = None  # how the focal length was found when no intrinsics were given
 
     @property
     def centres(self) -> np.ndarray:
@@ -137,8 +139,10 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
 
     Args:
       images: sequence of ``(H, W, 3)`` uint8 (or float in [0, 1]) images, or grey ``(H, W)``.
-      K: ``(3, 3)`` intrinsics; ``None`` guesses ``f = 1.2 max(W, H)`` at the centre (not refined:
-        the poses are then only as good as that guess).
+      K: ``(3, 3)`` intrinsics; ``None``: one focal length (fx = fy, principal point at the image
+        centre) is self-calibrated from the verified pairs (:func:`fsjax.sfm.focal.estimate_focal`,
+        starting from the guess ``f = 1.2 max(W, H)``) and verification is repeated with it;
+        ``Reconstruction.focal`` says how it was found.
       names: image names for reports. n_max: keypoint capacity per image. n_octaves: detector
         octaves. seed: RANSAC key.
       min_inliers: view-graph edge threshold. threshold_px: Sampson inlier threshold (px).
@@ -160,9 +164,11 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
     h, w = imgs[0].shape[:2]
     n = len(imgs)
     names = list(names) if names is not None else [f"{i:04d}" for i in range(n)]
-    if K is None:
+    focal_info = None
+    if K is None:  # guess (COLMAP's prior), then self-calibrate after verification (fsjax.sfm.focal)
         f = 1.2 * max(w, h)
         K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+        focal_info = dict(guess_px=f)
     K = np.asarray(K, np.float64)
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError(f"reconstruct: argument 'K' must be a finite (3, 3) intrinsics matrix, got {K}")
@@ -194,34 +200,55 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
 
     # 3. geometric verification
     t0 = time.perf_counter()
-    graph, edges, rel = [], [], {}
-    Kj = jnp.asarray(K)
-    for p, (i, j) in enumerate(pairs):
-        a = np.nonzero(M[p] >= 0)[0]
-        b = M[p][a]
-        e = dict(i=int(i), j=int(j), matches=int(len(a)), inliers=0, flag="few_matches")
-        if len(a) >= min_inliers:
-            res = relative_pose(jax.random.fold_in(key, p), jnp.asarray(_pad(uv_all[i][a], n_kp)),
-                                jnp.asarray(_pad(uv_all[j][b], n_kp)), Kj, threshold_px=threshold_px,
-                                n_hypotheses=n_hypotheses)
-            inl = np.asarray(res.inliers)[:len(a)]
-            e["inliers"] = int(inl.sum())
-            if e["inliers"] < min_inliers:
-                e["flag"] = "few_inliers"
-            elif bool(res.degenerate):
-                e["flag"] = "pure_rotation"
-            elif bool(res.converged):
-                e["flag"] = "ok"
-                X1 = np.asarray(res.points)[:len(a)][inl]
-                Rr, tr = np.asarray(res.R), np.asarray(res.t)
-                X1 = X1[np.all(np.isfinite(X1), 1)]
-                e["median_angle_deg"] = float(np.median(_angle_deg(X1, np.zeros(3), -Rr.T @ tr))) if len(X1) else 0.0
-                rel[(int(i), int(j))] = (Rr, tr)
+
+    def verify(K):
+        graph, edges, rel = [], [], {}
+        Kj = jnp.asarray(K)
+        for p, (i, j) in enumerate(pairs):
+            a = np.nonzero(M[p] >= 0)[0]
+            b = M[p][a]
+            e = dict(i=int(i), j=int(j), matches=int(len(a)), inliers=0, flag="few_matches")
+            if len(a) >= min_inliers:
+                res = relative_pose(jax.random.fold_in(key, p), jnp.asarray(_pad(uv_all[i][a], n_kp)),
+                                    jnp.asarray(_pad(uv_all[j][b], n_kp)), Kj, threshold_px=threshold_px,
+                                    n_hypotheses=n_hypotheses)
+                inl = np.asarray(res.inliers)[:len(a)]
+                e["inliers"] = int(inl.sum())
+                if e["inliers"] < min_inliers:
+                    e["flag"] = "few_inliers"
+                elif bool(res.degenerate):
+                    e["flag"] = "pure_rotation"
+                elif bool(res.converged):
+                    e["flag"] = "ok"
+                    X1 = np.asarray(res.points)[:len(a)][inl]
+                    Rr, tr = np.asarray(res.R), np.asarray(res.t)
+                    X1 = X1[np.all(np.isfinite(X1), 1)]
+                    e["median_angle_deg"] = float(np.median(_angle_deg(X1, np.zeros(3), -Rr.T @ tr))) if len(X1) else 0.0
+                    rel[(int(i), int(j))] = (Rr, tr)
+                else:
+                    e["flag"] = "no_pose"
+                if e["flag"] in ("ok", "pure_rotation"):
+                    edges.append((int(i), int(j), a[inl], b[inl]))
+            graph.append(e)
+        return graph, edges, rel
+
+    graph, edges, rel = verify(K)
+    if focal_info is not None:
+        ok = [(uv_all[i][a], uv_all[j][b]) for (i, j, a, b), e in
+              zip(edges, [e for e in graph if e["flag"] in ("ok", "pure_rotation")]) if e["flag"] == "ok"]
+        if ok:
+            est = estimate_focal(ok, (w, h), principal_point=(K[0, 2], K[1, 2]))
+            focal_info.update(est)
+            if not est["at_bound"]:
+                f = est["focal_px"]
+                K = np.array([[f, 0, K[0, 2]], [0, f, K[1, 2]], [0, 0, 1.0]])
+                say(f"focal length: {f:.1f} px (guess {focal_info['guess_px']:.1f}); verification repeated")
+                graph, edges, rel = verify(K)
             else:
-                e["flag"] = "no_pose"
-            if e["flag"] in ("ok", "pure_rotation"):
-                edges.append((int(i), int(j), a[inl], b[inl]))
-        graph.append(e)
+                focal_info["note"] = "self-calibration minimum at the search bound: guess kept"
+        else:
+            focal_info["note"] = "no verified pair: guess kept"
+    Kj = jnp.asarray(K)
     times["verification"] = time.perf_counter() - t0
     say(f"verification: {sum(e['flag'] == 'ok' for e in graph)} of {len(pairs)} pairs verified")
 
@@ -267,7 +294,7 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
         for i in range(n):
             reasons[i] = "no verified pair with parallax (view graph has no usable edge)"
         return _finish(names, K, (w, h), reg, R, t, uv_all, valid, X, has_pt, obs_ok, tid, obs_img, obs_kp, imgs,
-                       reasons, graph, times, np.nan, order, t0)
+                       reasons, graph, times, np.nan, order, t0, focal_info)
     e0 = max(good or cand, key=lambda e: (e["inliers"] if good else e.get("median_angle_deg", 0)))
     a0, b0 = e0["i"], e0["j"]
     R[a0], t[a0] = np.eye(3), np.zeros(3)
@@ -414,11 +441,11 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
     times["bundle_adjustment"] = ba_time[0]
     say(f"done: {int(reg.sum())}/{n} registered, {int(has_pt.sum())} points, rms {rms:.3f} px")
     return _finish(names, K, (w, h), reg, R, t, uv_all, valid, X, has_pt, obs_ok, tid, obs_img, obs_kp, imgs,
-                   reasons, graph, times, rms, order, None)
+                   reasons, graph, times, rms, order, None, focal_info)
 
 
 def _finish(names, K, size, reg, R, t, uv_all, valid, X, has_pt, obs_ok, tid, obs_img, obs_kp, imgs, reasons, graph,
-            times, rms, order, t0):
+            times, rms, order, t0, focal=None):
     if t0 is not None:
         times["reconstruction"] = time.perf_counter() - t0
     n = len(names)
@@ -450,7 +477,7 @@ def _finish(names, K, size, reg, R, t, uv_all, valid, X, has_pt, obs_ok, tid, ob
     t = np.where(reg[:, None], t, np.nan)
     return Reconstruction(names=list(names), K=K, size=size, registered=reg.copy(), R=R, t=t, keypoints=kps,
                           points=X[pts_ids].copy(), colors=colors, point_obs=point_obs, reasons=dict(reasons),
-                          view_graph=graph, times_s=dict(times), rms_px=float(rms), registration_order=list(order))
+                          view_graph=graph, times_s=dict(times), rms_px=float(rms), registration_order=list(order), focal=focal)
 
 
 def align_to_ground_truth(centres_est, R_cw_est, centres_gt, R_wc_gt, *, rotation_from: str = "centres"):

@@ -48,8 +48,8 @@ def run_folder(image_dir, out_dir, *, intrinsics=None, ground_truth=None, n_max:
     (COLMAP text), ``points.ply`` (coloured sparse points), ``report.md``, ``cameras.png`` and ``source.json``
     (the photographs' folder, read by ``fsjax splat``) to ``out_dir``.
 
-    ``intrinsics``: ``(fx, fy, cx, cy)`` in pixels (centres on integers); ``None`` guesses
-    ``f = 1.2 max(W, H)`` (stated in the report). ``ground_truth``: an optional ``cameras.json`` to score against.
+    ``intrinsics``: ``(fx, fy, cx, cy)`` in pixels (centres on integers); ``None`` self-calibrates
+    one focal length (``fsjax.sfm.focal``; how, stated in the report). ``ground_truth``: an optional ``cameras.json`` to score against.
     """
     names, imgs = load_image_dir(image_dir)
     K = None
@@ -64,7 +64,7 @@ def run_folder(image_dir, out_dir, *, intrinsics=None, ground_truth=None, n_max:
     ev = None
     if ground_truth is not None:
         ev = {k: v for k, v in evaluate(rec, load_ground_truth(ground_truth)).items() if not k.startswith("_")}
-    title = f"fsjax sfm: {Path(image_dir).name}" + ("" if K is not None else " (intrinsics guessed: f = 1.2 max(W, H))")
+    title = f"fsjax sfm: {Path(image_dir).name}" + ("" if K is not None else " (focal length self-calibrated)")
     write_report(rec, out, title=title, evaluation=ev)
     log(f"wrote {out / 'report.md'}, {out / 'points.ply'}, {out / 'sparse'}")
     return rec
