@@ -61,3 +61,20 @@ def test_bad_input_named():
         estimate_focal([(np.zeros((5, 2)), np.zeros((5, 2)))], (768, 512))
     with pytest.raises(ValueError, match="fundamental_8point.*uv1"):
         fundamental_8point(np.zeros((10, 2)), np.zeros((9, 2)))
+
+
+def test_reconstruct_without_intrinsics_recovers_the_focal_length(tmp_path):
+    # the bundled three-view fountain crop (384 x 256, real photographs): no K given
+    from fsjax.sfm.export import write_report
+    from fsjax.sfm.reconstruct import reconstruct
+
+    from ._data import NAMES, cameras, grey
+
+    K, _, _ = cameras()
+    rec = reconstruct([grey(n) for n in NAMES], None, names=list(NAMES), n_max=2048, n_octaves=3)
+    assert rec.registered.all()
+    f = rec.K[0, 0]
+    assert rec.K[1, 1] == f and rec.focal["guess_px"] == 1.2 * 384
+    assert abs(f - K[0, 0]) / K[0, 0] < 0.02, (f, K[0, 0])  # the guess 460.8 is 34 % off
+    write_report(rec, tmp_path)
+    assert f"focal length **{f:.2f} px**" in (tmp_path / "report.md").read_text()
