@@ -349,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("sfm", help="structure from motion on a folder of photographs or a video; DIR/report.md, COLMAP text, PLY")
     p.add_argument("image_dir", help="folder of .jpg/.png photographs, or a video file (.mp4, .mov, ...)")
     p.add_argument("--out", required=True)
-    p.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (pixel centres on integers); default: guessed")
+    p.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (pixel centres on integers); default: one focal length self-calibrated, principal point at the centre (image folders)")
     p.add_argument("--ground-truth", help="cameras.json to score against (as in ../shared/data/sfm)")
     p.add_argument("--max-features", type=int, default=4096, help="keypoint capacity per image")
     p.add_argument("--octaves", type=int, default=5, help="detector octaves (the first at twice the image size)")
