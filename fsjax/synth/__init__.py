@@ -29,6 +29,11 @@ from ._match3d_more import MATCH3D_MORE_CELL_TOL as MATCH3D_MORE_CELL_TOL
 from ._match3d_more import MATCH3D_MORE_METHODS as MATCH3D_MORE_METHODS
 from ._match3d_more import MATCH3D_MORE_NOT_YET as MATCH3D_MORE_NOT_YET
 from ._match3d_more import run_more_cell as run_more_cell
+from ._match3d_desc import MATCH3D_DESC_METHODS as MATCH3D_DESC_METHODS
+from ._match3d_desc import MATCH3D_DESC_MIN as MATCH3D_DESC_MIN
+from ._match3d_desc import MATCH3D_DESC_NOT_YET as MATCH3D_DESC_NOT_YET
+from ._match3d_desc import MATCH3D_DESC_STRUCTURES as MATCH3D_DESC_STRUCTURES
+from ._match3d_desc import run_descriptor_cell as run_descriptor_cell
 from ._multiview import bundle_scene as bundle_scene
 from ._particles import particle_scene as particle_scene
 from ._phantom import CT_MATERIALS as CT_MATERIALS
