@@ -53,6 +53,7 @@ from .points._cloud import *  # noqa: F403
 from .points._curvature import *  # noqa: F403
 from .points._search import *  # noqa: F403
 from .points._segment import *  # noqa: F403
+from .points._harris3d import *  # noqa: F403
 from .mesh._decimate import *  # noqa: F403
 from .mesh._mesh import *  # noqa: F403
 from .mesh._subdivide import *  # noqa: F403

@@ -33,6 +33,7 @@ from ._match3d_desc import MATCH3D_DESC_METHODS as MATCH3D_DESC_METHODS
 from ._match3d_desc import MATCH3D_DESC_MIN as MATCH3D_DESC_MIN
 from ._match3d_desc import MATCH3D_DESC_NOT_YET as MATCH3D_DESC_NOT_YET
 from ._match3d_desc import MATCH3D_DESC_STRUCTURES as MATCH3D_DESC_STRUCTURES
+from ._match3d_desc import harris3d_repeatability as harris3d_repeatability
 from ._match3d_desc import run_descriptor_cell as run_descriptor_cell
 from ._multiview import bundle_scene as bundle_scene
 from ._particles import particle_scene as particle_scene

@@ -20,7 +20,7 @@ from ..types import Points, Volume
 from ._match3d import match3d_object, match3d_scene, rotation_zyx
 
 __all__ = ["MATCH3D_DESC_METHODS", "MATCH3D_DESC_STRUCTURES", "MATCH3D_DESC_NOT_YET", "MATCH3D_DESC_MIN",
-           "run_descriptor_cell"]
+           "run_descriptor_cell", "harris3d_repeatability"]
 
 MATCH3D_DESC_METHODS = ("sh_descriptor3d",)
 MATCH3D_DESC_STRUCTURES = ("voxel", "points", "mesh", "depth", "gaussians")
@@ -132,3 +132,44 @@ def run_descriptor_cell(structure: str, method: str = "sh_descriptor3d", *, seed
             others.append(float(ops.sh_similarity3d(dtpl, desc(sc))))
         out["other"] = max(others)
     return out
+
+
+def harris3d_repeatability(*, seed: int = 0, n: int = 5000, angle_deg: float = 60.0, overlap: float = 0.7,
+                           eps: float = 0.01, fresh: bool = False, dtype: Any = None, **kw) -> dict:
+    """Repeatability of :func:`fsjax.ops.harris3d` on two crops of the bunny (unit size) sharing
+    ``overlap`` of each, the second turned by ``angle_deg`` about the axis (0.2, 1, 0.5).
+
+    The first crop keeps the low-x part of ``n`` samples, the second the high-x part of the same
+    samples (``fresh=True``: of a fresh draw). Repeatability: the fraction of the first crop's
+    keypoints inside the shared x-band that have a keypoint of the second (turned back) within
+    ``eps``; the null does the same with as many random points of each crop. ``valid``: the
+    detector found keypoints in both; ``kw`` goes to ``harris3d``.
+    """
+    from .. import ops
+    from ..fit import rotation_from_axis_angle
+
+    dt = jnp.result_type(float) if dtype is None else dtype
+    keep = 1.0 / (2.0 - overlap)
+    a = match3d_object("bunny", 1.0, n, seed)
+    b = match3d_object("bunny", 1.0, n, seed + 1) if fresh else a
+    xs = a[a[:, 0] <= np.quantile(a[:, 0], keep)]
+    xt = b[b[:, 0] >= np.quantile(b[:, 0], 1.0 - keep)]
+    R = np.asarray(rotation_from_axis_angle(jnp.array([0.2, 1.0, 0.5]), angle_deg))
+    ka = ops.harris3d(Points(jnp.asarray(xs, dt)), **kw)
+    kb = ops.harris3d(Points(jnp.asarray(xt @ R.T, dt)), **kw)
+    pa = np.asarray(ka.xyz, float)[np.asarray(ka.valid)]
+    pb = np.asarray(kb.xyz, float)[np.asarray(kb.valid)] @ R
+    lo, hi = xt[:, 0].min(), xs[:, 0].max()
+
+    def rep(p, q):
+        p = p[(p[:, 0] >= lo) & (p[:, 0] <= hi)]
+        q = q[(q[:, 0] >= lo) & (q[:, 0] <= hi)]
+        if len(p) == 0 or len(q) == 0:
+            return float("nan"), len(p)
+        return float(np.mean(np.linalg.norm(p[:, None] - q[None], axis=-1).min(1) < eps)), len(p)
+
+    r, n_in = rep(pa, pb)
+    rng = np.random.default_rng(seed)
+    null, _ = rep(xs[rng.choice(len(xs), len(pa))], xt[rng.choice(len(xt), len(pb))])
+    return {"repeatability": r, "null": null, "n_keypoints": (len(pa), len(pb)), "n_shared": n_in,
+            "valid": bool(len(pa) > 0 and len(pb) > 0), "keypoints": ka}
