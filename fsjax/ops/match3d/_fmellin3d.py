@@ -139,7 +139,7 @@ def fourier_mellin_z3d(scene: Volume, template: Volume, /, *, n_theta: int = 180
     Refine with :func:`lm_rotation_z3d`.
 
     Args:
-      scene: the scene ``(D, H, W)`` with ``H == W`` and ``dy == dx``.
+      scene: the scene ``(D, H, W)`` with ``dy == dx`` (``H != W``: zero-padded to a square in y, x).
       template: the template, same shape and spacing (the object near its centre).
       n_theta: angle bins over 180 degrees (static int in [8, 1440]).
       n_rho: log-radius bins (static int in [8, 512]).
@@ -172,17 +172,19 @@ def fourier_mellin_z3d(scene: Volume, template: Volume, /, *, n_theta: int = 180
     """
     op = "fourier_mellin_z3d"
     S_shape, _, dt = check_pair(op, scene, template, same=True)
-    if S_shape[1] != S_shape[2]:
-        raise ValueError(f"{op}: argument 'scene' has shape {S_shape}; Fourier-Mellin about z needs H == W")
     if scene.spacing[1] != scene.spacing[2]:
         raise ValueError(f"{op}: argument 'scene' has spacing {scene.spacing}; a rotation about z needs dy == dx")
     nt = check_static_int(op, "n_theta", n_theta, lo=8, hi=1440)
     nr = check_static_int(op, "n_rho", n_rho, lo=8, hi=512)
     check_range(op, "min_score", min_score, -1.0, 1.0)
-    a, s, x, f, ok, _ = _fm_core(scene.data.astype(dt), template.data.astype(dt), n_theta=nt, n_rho=nr,
-                                 resolve=bool(resolve))
+    # a non-square xy plane is zero-padded at its far edges to a square (the log-polar grid needs
+    # one; every voxel keeps its indices, and the pose below refers to the padded centre)
+    n = max(S_shape[1], S_shape[2])
+    pad = ((0, 0), (0, n - S_shape[1]), (0, n - S_shape[2]))
+    a, s, x, f, ok, _ = _fm_core(jnp.pad(scene.data.astype(dt), pad), jnp.pad(template.data.astype(dt), pad),
+                                 n_theta=nt, n_rho=nr, resolve=bool(resolve))
     R = _rz(a, dt)
-    c = xyz_of((jnp.asarray(S_shape, dt) - 1) / 2, scene.spacing).astype(dt)
+    c = xyz_of((jnp.asarray((S_shape[0], n, n), dt) - 1) / 2, scene.spacing).astype(dt)
     t = c + xyz_of(x, scene.spacing).astype(dt) - s * (R @ c)
     valid = ok & (f >= jnp.asarray(min_score, dt))
     reason = jnp.where(ok, _NOT_FOUND, _INVALID)
