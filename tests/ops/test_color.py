@@ -289,6 +289,24 @@ def test_color_channel_bad_index(bad):
         color_channel(Color(jnp.zeros((2, 2, 3))), channel=bad)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_decorrelation_stretch_gradient_on_a_constant_image(dtype):
+    """Found by the chain fuzzer (GRADNAN, minimised: a constant 15 x 17 float32 colour image ->
+    decorrelation_stretch -> rgb_to_lab -> lab_to_rgb): the forward pass was finite (the mean),
+    the gradient NaN (eigh of the zero covariance). The output is the channel mean, so the
+    gradient of its sum is exactly 1 per pixel and channel."""
+    x = jnp.full((15, 17, 3), 0.4903, dtype) * jnp.asarray([1.0, 0.8, 0.6], dtype)
+    out = decorrelation_stretch(Color(x), target_sigma=0.2)
+    assert np.allclose(np.asarray(out.data), np.asarray(x), atol=1e-6)
+    for kw in ({}, {"target_sigma": 0.2}):
+        g = jax.grad(lambda v, kw=kw: jnp.sum(decorrelation_stretch(Color(v), **kw).data))(x)
+        assert bool(jnp.all(jnp.isfinite(g))), kw
+        assert np.allclose(np.asarray(g), 1.0, atol=1e-5), kw
+    chain = jax.grad(lambda v: jnp.sum(fsjax.ops.lab_to_rgb(fsjax.ops.rgb_to_lab(
+        decorrelation_stretch(Color(v), target_sigma=0.2))).data))(x)
+    assert bool(jnp.all(jnp.isfinite(chain))) and bool(jnp.any(chain != 0))
+
+
 def test_decorrelation_stretch_bad_parameters():
     x = Color(jnp.zeros((2, 2, 3)))
     with pytest.raises(ValueError, match="decorrelation_stretch: argument 'target_sigma'"):

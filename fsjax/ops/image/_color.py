@@ -428,11 +428,13 @@ def decorrelation_stretch(img: Color, /, *, target_sigma: float | None = None,
     ``max_gain`` times the gain of the strongest axis:
     ``g_i = max(lam_i, lam_max / max_gain^2)^-1/2``. Axes above that floor are
     whitened exactly; a null axis carries nothing and stays (near) zero, with no
-    blow-up under small perturbations. A constant image is returned unchanged
-    (up to the rounding of its mean).
-    Gradients are finite when the eigenvalues are distinct; where two coincide
-    (e.g. a grey image) they are NaN, the usual eigenvector-derivative
-    singularity.
+    blow-up under small perturbations. A constant image (variance below
+    ``(64 eps max|x|)^2``, the mean's rounding) is returned as its mean, with or
+    without ``target_sigma``.
+    Gradients are finite when the eigenvalues are distinct and on a constant image
+    (all three zero: the output is the mean, found by the chain fuzzer); where two
+    coincide otherwise (e.g. a grey image with noise) they are NaN, the usual
+    eigenvector-derivative singularity.
 
     Args:
       img: linear RGB ``(H, W, 3)``.
@@ -474,9 +476,18 @@ def decorrelation_stretch(img: Color, /, *, target_sigma: float | None = None,
     mu = jnp.mean(flat, axis=0)
     d = flat - mu
     cov = d.T @ d / flat.shape[0]
-    lam, vec = jnp.linalg.eigh(cov)
+    # A constant image: its deviations from the mean are the mean's rounding error (the same at
+    # every pixel), which whitening would stretch into a spurious offset of order target_sigma;
+    # and its covariance has equal eigenvalues, where eigh's eigenvector derivative is
+    # 0 * inf = NaN even for a zero tangent. Below a variance of (64 eps max|x|)^2 the image is
+    # taken as constant: the output is its mean, the decomposition is of a fixed matrix with
+    # distinct eigenvalues, and the gradient stays finite.
+    tol = (64 * jnp.finfo(x.dtype).eps * jnp.max(jnp.abs(flat))) ** 2
+    flat_cov = jnp.trace(cov) <= 3 * tol
+    lam, vec = jnp.linalg.eigh(jnp.where(flat_cov, jnp.diag(jnp.arange(1.0, 4.0, dtype=cov.dtype)), cov))
     floor = jnp.maximum(lam, jnp.max(lam) / max_gain**2)
     ok = floor > 0
+    ok = ok & ~flat_cov
     gain = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, floor, jnp.ones_like(floor))), jnp.zeros_like(floor))
     whiten = (vec * gain[None, :]) @ vec.T
     if target_sigma is None:
