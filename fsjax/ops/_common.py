@@ -24,10 +24,13 @@ depend on a knob (sigma) compiles once for all knob values.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
 from .._checks import check_static_int, is_concrete
 
@@ -68,6 +71,10 @@ def correlate1d(x: Any, weights: Any, axis: int, mode: str = "reflect", cval: fl
 
     ``out[i] = sum_k w[k] * x[i + k - r]`` with ``r = len(w) // 2`` (SciPy's
     ``correlate1d`` with ``origin=0``), boundary by ``mode``.
+
+    Differentiable in ``x`` and ``weights``; derivatives go through a custom JVP
+    (:func:`_shift_add`), so ``grad`` of a long traced kernel compiles in a fraction of
+    a second instead of transposing every shifted slice.
     """
     axis = axis % x.ndim
     w = jnp.asarray(weights)
@@ -75,23 +82,71 @@ def correlate1d(x: Any, weights: Any, axis: int, mode: str = "reflect", cval: fl
     r = n // 2 + origin
     xp = pad_axis(x, r, n - 1 - r, axis, mode, cval)
     length = x.shape[axis]
+    dt = jnp.result_type(x, w)
     if n > UNROLL_TAPS:
         # a long kernel: a loop over the taps keeps the program size (and compile time)
         # independent of the kernel length; the unrolled form took 49 s to build for 1601 taps
-        import jax
-
         def body(k, acc):
             return acc + w[k] * jax.lax.dynamic_slice_in_dim(xp, k, length, axis=axis)
 
-        zero = jnp.zeros(x.shape, jnp.result_type(x, w))
+        zero = jnp.zeros(x.shape, dt)
         return jax.lax.fori_loop(0, n, body, zero)
+    return _shift_add(xp.astype(dt), w.astype(dt), axis, length)
+
+
+def _shift_add_plain(xp, w, axis: int, length: int):
+    """``sum_k w[k] * xp[k : k + length]`` along ``axis``, unrolled over the static taps."""
     out = None
-    for k in range(n):
-        sl = [slice(None)] * x.ndim
+    for k in range(int(w.shape[0])):
+        sl = [slice(None)] * xp.ndim
         sl[axis] = slice(k, k + length)
         term = w[k] * xp[tuple(sl)]
         out = term if out is None else out + term
     return out
+
+
+def _conv_along(xp, w, axis: int):
+    """The same correlation as one XLA convolution (a valid 1-D correlation along ``axis``)."""
+    xm = jnp.moveaxis(xp, axis, -1)
+    lead = xm.shape[:-1]
+    lhs = xm.reshape((-1, 1, xm.shape[-1]))
+    out = jax.lax.conv_general_dilated(lhs, w.reshape(1, 1, -1).astype(lhs.dtype), (1,), "VALID",
+                                       dimension_numbers=("NCH", "OIH", "NCH"),
+                                       precision=jax.lax.Precision.HIGHEST)
+    return jnp.moveaxis(out.reshape(lead + (out.shape[-1],)), -1, axis)
+
+
+def _make_shift_add():
+    """The unrolled shift-and-add with a JVP written as XLA convolutions.
+
+    The unrolled form is the fastest forward pass on a CPU, but reverse-mode autodiff
+    transposes each of its ``n`` shifted slices into a padded full-size array: ``grad`` of
+    one 81-tap separable Gaussian took 10.7 s to compile and 365 ms to run (256 x 256,
+    float64). The JVP below is the same bilinear map as convolutions, whose transposes XLA
+    has as convolutions (0.2-0.3 s to compile). Zero tangents stay symbolic, so a constant
+    kernel costs nothing in the derivative pass.
+    """
+    @functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
+    def shift_add(xp, w, axis, length):
+        return _shift_add_plain(xp, w, axis, length)
+
+    def _jvp(axis, length, primals, tangents):
+        xp, w = primals
+        dxp, dw = tangents
+        y = _shift_add_plain(xp, w, axis, length)
+        dy = jnp.zeros_like(y)
+        if not isinstance(dxp, SymbolicZero):
+            dy = dy + _conv_along(dxp, w, axis)
+        if not isinstance(dw, SymbolicZero):
+            dy = dy + _conv_along(xp, dw, axis)
+        return y, dy
+
+    shift_add.defjvp(_jvp, symbolic_zeros=True)
+
+    return shift_add
+
+
+_shift_add = _make_shift_add()
 
 
 def window_stack(x: Any, r0: int, r1: int, mode: str = "reflect", cval: float = 0.0, mask: Any = None):
