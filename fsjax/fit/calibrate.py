@@ -163,10 +163,15 @@ def zhang_init(board_xy, image_uv, image_size) -> tuple[np.ndarray, np.ndarray, 
     V = np.vstack([V, np.array([0, 1.0, 0, 0, 0, 0]) * np.linalg.norm(V)])
     b = np.linalg.svd(V)[2][-1]
     B11, B12, B22, B13, B23, B33 = b
-    den = B11 * B22 - B12 ** 2
-    v0 = (B12 * B13 - B11 * B23) / den
-    lam = B33 - (B13 ** 2 + v0 * (B12 * B13 - B11 * B23)) / B11
-    if not (lam / B11 > 0 and lam * B11 / den > 0):
+    # a degenerate set can give B11 = 0 or den = 0 exactly (parallel boards; whether the SVD
+    # returns an exact zero depends on the LAPACK build): the NaN / inf it yields fails the
+    # positivity test below, which raises the clear error, not a numpy warning
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = B11 * B22 - B12 ** 2
+        v0 = (B12 * B13 - B11 * B23) / den
+        lam = B33 - (B13 ** 2 + v0 * (B12 * B13 - B11 * B23)) / B11
+        determined = bool(lam / B11 > 0 and lam * B11 / den > 0)
+    if not determined:
         raise ValueError("zhang_init: argument 'image_uv' must hold views that determine the intrinsics; the "
                          "homographies are degenerate")
     al = np.sqrt(lam / B11)
