@@ -39,7 +39,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._checks import check_positive, check_static_int
+from .._checks import check_choice, check_positive, check_range, check_static_int
+from .._linalg import eigh_small
 from ..ops import estimate_normals, knn
 from ..ops.points._search import _BRUTE_LIMIT, build_index
 from ..types import Points
@@ -48,7 +49,7 @@ from ._cloud import as_cloud
 from .icp import ICPResult, icp
 from .rigid import NO_HYPOTHESIS, OK, TOO_FEW, _weighted_kabsch, kabsch_umeyama
 
-__all__ = ["fpfh", "match_descriptors", "CorrespondenceRansacResult", "ransac_registration", "GlobalResult",
+__all__ = ["fpfh", "spin_images", "shot", "match_descriptors", "CorrespondenceRansacResult", "ransac_registration", "GlobalResult",
            "global_registration"]
 
 _BINS = 11
@@ -147,6 +148,222 @@ def fpfh(
     normal_k = check_static_int(fn, "normal_k", normal_k, lo=3, hi=32)
     nrm = None if normals is None else jnp.asarray(normals, xyz.dtype)
     return _fpfh_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=int(normal_k))
+
+
+def _tent(x, centres, circular_period=None):
+    """Linear-interpolation weights of ``x`` (any shape) on bins centred at ``centres`` (ascending, equal spacing).
+
+    Outside the outer centres the whole weight goes to the outer bin; ``circular_period`` wraps the axis.
+    Returns ``x.shape + (len(centres),)`` weights summing to 1.
+    """
+    c = jnp.asarray(centres, x.dtype)
+    h = c[1] - c[0] if c.shape[0] > 1 else jnp.asarray(1.0, x.dtype)
+    if circular_period is None:
+        xc = jnp.clip(x, c[0], c[-1])
+        d = jnp.abs(xc[..., None] - c)
+    else:
+        d = jnp.abs(jnp.remainder(x[..., None] - c + 0.5 * circular_period, circular_period) - 0.5 * circular_period)
+    return jnp.maximum(0.0, 1.0 - d / h)
+
+
+def _neighbourhoods(xyz, valid, radius, capacity):
+    """Neighbours within ``radius`` among the ``capacity`` nearest (the point itself excluded)."""
+    idx, d2 = knn(xyz, xyz, capacity + 1, ref_valid=valid)
+    idx, d2 = idx[:, 1:], d2[:, 1:]
+    inr = (idx >= 0) & (d2 <= radius**2) & (d2 > 0) & valid[:, None]
+    return jnp.maximum(idx, 0), d2, inr, inr[:, -1]
+
+
+def _majority_sign(v, D, m):
+    """Flip each ``v`` (N, 3) so that most of its neighbours' offsets ``D`` (N, K, 3) lie on its positive side.
+
+    The sign disambiguation of Bro, Acar & Kolda (2008) as used by SHOT's local frame; a tie keeps ``v``.
+    """
+    proj = jnp.where(m, jnp.einsum("nki,ni->nk", D, v), 0.0)
+    s = jnp.sum(jnp.sign(proj), -1)
+    s = jnp.where(s == 0, jnp.sum(proj, -1), s)  # a tie in the count: the side of the summed offsets
+    return v * jnp.where(s < 0, -1.0, 1.0)[:, None]
+
+
+def _oriented_normals(xyz, valid, normals, D, m, normal_k):
+    """PCA normals (or the given ones), each turned to the side where most of its neighbours lie.
+
+    A rule of the local geometry alone, so two scans of one surface orient a normal alike wherever
+    their neighbourhoods agree (the centroid rule of :func:`fpfh` depends on the crop).
+    """
+    if normals is None:
+        normals = estimate_normals(Points(xyz, valid=valid), k=normal_k).normals
+    nok = valid & jnp.all(jnp.isfinite(normals), -1)
+    normals = jnp.where(nok[:, None], normals, 0.0)
+    return _majority_sign(normals, D, m), nok
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "normal_k", "n_alpha", "n_beta"))
+def _spin_core(xyz, valid, normals, radius, cos_support, *, capacity, normal_k, n_alpha, n_beta):
+    j, d2, inr, truncated = _neighbourhoods(xyz, valid, radius, capacity)
+    D = xyz[j] - xyz[:, None, :]
+    n, nok = _oriented_normals(xyz, valid, normals, D, inr, normal_k)
+    # beta's sign follows the normal's: orient away from the cloud's centroid (as fpfh); the
+    # local majority rule flips on flat patches and lost 2 of 3 crop pairs (docs/registration.md)
+    c = jnp.sum(jnp.where(valid[:, None], xyz, 0.0), 0) / jnp.maximum(jnp.sum(valid), 1)
+    n = n * jnp.where(jnp.sum(n * (xyz - c), -1) < 0, -1.0, 1.0)[:, None]
+    m = inr & nok[:, None] & nok[j] & (jnp.einsum("nki,nki->nk", n[j], jnp.broadcast_to(n[:, None], D.shape))
+                                      >= cos_support)
+    beta = jnp.einsum("nki,ni->nk", D, n)
+    alpha = jnp.sqrt(jnp.maximum(jnp.sum(D * D, -1) - beta * beta, 0.0))
+    ha, hb = radius / n_alpha, 2.0 * radius / n_beta
+    wa = _tent(alpha, (jnp.arange(n_alpha) + 0.5) * ha)
+    wb = _tent(beta, -radius + (jnp.arange(n_beta) + 0.5) * hb)
+    img = jnp.einsum("nk,nka,nkb->nab", m.astype(xyz.dtype), wa, wb).reshape(xyz.shape[0], -1)
+    # normalised to zero mean and unit norm: Euclidean distance ranks as Johnson's correlation coefficient
+    img = img - jnp.mean(img, -1, keepdims=True)
+    nrm = jnp.linalg.norm(img, axis=-1, keepdims=True)
+    good = nok & (jnp.sum(m, -1) >= 3) & (nrm[:, 0] > 0)
+    return jnp.where(good[:, None], img / jnp.where(nrm > 0, nrm, 1.0), 0.0), good, truncated
+
+
+def spin_images(
+    points: Points | Float[Array, "N 3"],
+    *,
+    radius: float,
+    n_alpha: int = 8,
+    n_beta: int = 16,
+    support_angle: float = 180.0,
+    capacity: int = 48,
+    normal_k: int = 10,
+) -> tuple[Float[Array, "N F"], Bool[Array, " N"], Bool[Array, " N"]]:
+    """Spin images (Johnson & Hebert 1999), one per point, ``n_alpha * n_beta`` values.
+
+    For the oriented point ``(p, n)`` each neighbour ``x`` within ``radius`` has the cylindrical
+    coordinates ``beta = n . (x - p)`` (height over the tangent plane) and ``alpha = sqrt(|x - p|^2 -
+    beta^2)`` (distance from the normal line); the image is their 2-D histogram on ``alpha`` in
+    ``[0, radius]`` and ``beta`` in ``[-radius, radius]``, each sample spread bilinearly over the
+    four nearest bin centres. Neighbours whose normal turns more than ``support_angle`` from ``n``
+    are left out (the paper's support angle against self-occlusion and clutter; off by default:
+    on the crop pairs of the registration benchmark, without clutter, the full support matched
+    best). The image is invariant to a rotation about ``n``; the normal points away from the
+    cloud's centroid (as in :func:`fpfh`; it can flip between two crops where the normal is
+    nearly tangent to the radial direction). Each image is returned with its mean
+    removed and unit norm, so the Euclidean distance ranks matches as the paper's correlation
+    coefficient does.
+
+    Args:
+        points: cloud (``Points``, whose ``normals`` are used when present, or ``(N, 3)``).
+        radius: support radius (cloud units), typically 4-6x the point spacing.
+        n_alpha, n_beta: bins along ``alpha`` and ``beta`` (static ints >= 2).
+        support_angle: degrees, in (0, 180] (the paper suggests about 60 in clutter).
+        capacity: maximum neighbours per point (static int).
+        normal_k: neighbours for the PCA normals when the cloud has none (static int).
+
+    Returns:
+        ``(descriptors (N, n_alpha * n_beta), valid (N,), truncated (N,))``; ``valid`` is False for
+        invalid points and points with fewer than 3 supporting neighbours (their descriptor is 0).
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from fsjax.fit import spin_images, rotation_from_axis_angle
+        >>> from fsjax.data import surface_points
+        >>> x = jnp.asarray(surface_points("bunny", 400, 0))
+        >>> f1, ok1, _ = spin_images(x, radius=0.03)
+        >>> f2, ok2, _ = spin_images(x @ rotation_from_axis_angle(jnp.array([1.0, 2, 3]), 70.0).T, radius=0.03)
+        >>> bool(ok1.mean() > 0.95), float(jnp.abs(f1 - f2).max()) < 1e-9   # rotation invariant
+        (True, True)
+    """
+    fn = "spin_images"
+    xyz, valid, normals = as_cloud(fn, "points", points)
+    check_positive(fn, "radius", radius)
+    n_alpha = check_static_int(fn, "n_alpha", n_alpha, lo=2, hi=64)
+    n_beta = check_static_int(fn, "n_beta", n_beta, lo=2, hi=64)
+    check_range(fn, "support_angle", support_angle, 0.0, 180.0, lo_open=True)
+    capacity = check_static_int(fn, "capacity", capacity, lo=3)
+    normal_k = check_static_int(fn, "normal_k", normal_k, lo=3, hi=32)
+    nrm = None if normals is None else jnp.asarray(normals, xyz.dtype)
+    cs = jnp.asarray(np.cos(np.deg2rad(float(support_angle))) - 1e-12, xyz.dtype)
+    return _spin_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), cs, capacity=capacity,
+                      normal_k=int(normal_k), n_alpha=n_alpha, n_beta=n_beta)
+
+
+_SHOT_COS, _SHOT_AZ, _SHOT_EL, _SHOT_RAD = 11, 8, 2, 2
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "normal_k"))
+def _shot_core(xyz, valid, normals, radius, *, capacity, normal_k):
+    dt = xyz.dtype
+    j, d2, inr, truncated = _neighbourhoods(xyz, valid, radius, capacity)
+    D = xyz[j] - xyz[:, None, :]
+    dist = jnp.sqrt(jnp.where(inr, d2, 0.0))
+    # local reference frame: covariance about the point itself, weighted by (radius - distance)
+    w = jnp.where(inr, radius - dist, 0.0)
+    C = jnp.einsum("nk,nki,nkj->nij", w, D, D) / jnp.maximum(jnp.sum(w, -1), 1e-30)[:, None, None]
+    _, V = eigh_small(C)  # ascending: V[..., 2] = x (largest), V[..., 0] = z (normal)
+    ex = _majority_sign(V[..., 2], D, inr)
+    ez = _majority_sign(V[..., 0], D, inr)
+    ey = jnp.cross(ez, ex)
+    n, nok = _oriented_normals(xyz, valid, normals, D, inr, normal_k)
+    m = inr & nok[j]
+    L = jnp.einsum("nki,nji->nkj", D, jnp.stack([ex, ey, ez], 1))  # neighbour offsets in the frame
+    cosang = jnp.einsum("nki,ni->nk", n[j], ez)
+    az = jnp.arctan2(L[..., 1], L[..., 0])
+    el = jnp.arctan2(L[..., 2], jnp.sqrt(L[..., 0] ** 2 + L[..., 1] ** 2))
+    w_cos = _tent(cosang, -1.0 + (jnp.arange(_SHOT_COS) + 0.5) * (2.0 / _SHOT_COS))
+    w_az = _tent(az, -jnp.pi + (jnp.arange(_SHOT_AZ) + 0.5) * (2 * jnp.pi / _SHOT_AZ), circular_period=2 * jnp.pi)
+    w_el = _tent(el, jnp.array([-0.25, 0.25], dt) * jnp.pi)
+    w_rad = _tent(dist, jnp.array([0.25, 0.75], dt) * radius)
+    h = jnp.einsum("nk,nka,nkb,nkc,nkd->nabcd", m.astype(dt), w_az, w_el, w_rad, w_cos).reshape(xyz.shape[0], -1)
+    nrm = jnp.linalg.norm(h, axis=-1, keepdims=True)
+    good = valid & nok & (jnp.sum(m, -1) >= 5) & (nrm[:, 0] > 0)
+    return jnp.where(good[:, None], h / jnp.where(nrm > 0, nrm, 1.0), 0.0), good, truncated
+
+
+def shot(
+    points: Points | Float[Array, "N 3"],
+    *,
+    radius: float,
+    capacity: int = 48,
+    normal_k: int = 10,
+) -> tuple[Float[Array, "N 352"], Bool[Array, " N"], Bool[Array, " N"]]:
+    """SHOT, Signatures of Histograms of OrienTations (Tombari, Salti & Di Stefano 2010), 352 values per point.
+
+    A local reference frame per point: the eigenvectors of the covariance of the neighbours within
+    ``radius`` about the point itself, each neighbour weighted by ``radius - distance``; the largest
+    axis is ``x``, the smallest ``z``, each turned to the side where most neighbours lie (Bro et al.
+    2008's disambiguation; a tie goes by the sign of the summed offsets), ``y = z x x``. In that frame the sphere of ``radius`` is split into 32
+    volumes (8 azimuth x 2 elevation x 2 radial); each volume holds an 11-bin histogram of the cosine
+    between a neighbour's normal and ``z``. Every neighbour is spread by quadrilinear interpolation
+    (cosine, azimuth (circular), elevation, radius) as in the paper; the 352 values have unit norm.
+    Normals are PCA normals of ``normal_k`` points, each turned to the side where most of its
+    neighbours lie.
+
+    Args:
+        points: cloud (``Points``, whose ``normals`` are used when present, or ``(N, 3)``).
+        radius: support radius (cloud units).
+        capacity: maximum neighbours per point (static int).
+        normal_k: neighbours for the PCA normals when the cloud has none (static int).
+
+    Returns:
+        ``(descriptors (N, 352), valid (N,), truncated (N,))``; ``valid`` is False for invalid
+        points and points with fewer than 5 neighbours in ``radius`` (their descriptor is 0).
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> from fsjax.fit import shot, rotation_from_axis_angle
+        >>> from fsjax.data import surface_points
+        >>> x = jnp.asarray(surface_points("bunny", 400, 0))
+        >>> f1, ok1, _ = shot(x, radius=0.03)
+        >>> f2, ok2, _ = shot(x @ rotation_from_axis_angle(jnp.array([1.0, 2, 3]), 70.0).T, radius=0.03)
+        >>> bool(ok1.mean() > 0.95), float(jnp.abs(f1 - f2).max()) < 1e-6   # rotation invariant
+        (True, True)
+    """
+    fn = "shot"
+    xyz, valid, normals = as_cloud(fn, "points", points)
+    check_positive(fn, "radius", radius)
+    capacity = check_static_int(fn, "capacity", capacity, lo=5)
+    normal_k = check_static_int(fn, "normal_k", normal_k, lo=3, hi=32)
+    nrm = None if normals is None else jnp.asarray(normals, xyz.dtype)
+    return _shot_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=int(normal_k))
+
+
+DESCRIPTORS = {"fpfh": fpfh, "spin": spin_images, "shot": shot}
 
 
 def match_descriptors(desc_src, desc_tgt, valid_src=None, valid_tgt=None, *, mutual: bool = True):
@@ -315,18 +532,19 @@ def global_registration(
     refine: str | None = "point_to_plane",
     overlap: float = 1.0,
     refit_rounds: int = 10,
+    descriptor: str = "fpfh",
     **icp_kwargs,
 ) -> GlobalResult:
-    """FPFH descriptors, mutual matching, correspondence RANSAC, then ICP from the RANSAC pose.
+    """Local descriptors (FPFH by default), mutual matching, correspondence RANSAC, then ICP from the RANSAC pose.
 
     Args:
         key: PRNG key for RANSAC.
         source, target: clouds (``Points`` or ``(N, 3)``).
-        radius: FPFH radius (cloud units).
+        radius: descriptor support radius (cloud units).
         distance: RANSAC inlier threshold and ICP correspondence gate (2x) (cloud units).
         n_hypotheses: RANSAC hypotheses (static).
         mutual: mutual-nearest descriptor matches only.
-        capacity: FPFH neighbour capacity (static).
+        capacity: descriptor neighbour capacity (static).
         refine: ICP method for the refinement (``None``: none; the refined record then repeats the
             coarse pose with ``iterations=0``).
         overlap: trimmed-ICP overlap for the refinement (partial scans: about the shared fraction).
@@ -335,13 +553,17 @@ def global_registration(
             closer than ``distance / 2``); the matches of independent samples are only
             spacing-accurate, point pairs are many more. ``coarse_matches_R`` keeps the pure
             RANSAC rotation. 0 disables.
+        descriptor: ``"fpfh"`` (:func:`fpfh`, 33 values), ``"spin"`` (:func:`spin_images`, 128) or
+            ``"shot"`` (:func:`shot`, 352).
         **icp_kwargs: further :func:`fsjax.fit.icp` arguments.
 
     Returns:
         :class:`GlobalResult`. A failed RANSAC (reason != 0) gives a failed refinement (NaN) too.
     """
-    fs, vs, trs = fpfh(source, radius=radius, capacity=capacity)
-    ft, vt, trt = fpfh(target, radius=radius, capacity=capacity)
+    check_choice("global_registration", "descriptor", descriptor, tuple(DESCRIPTORS))
+    describe = DESCRIPTORS[descriptor]
+    fs, vs, trs = describe(source, radius=radius, capacity=capacity)
+    ft, vt, trt = describe(target, radius=radius, capacity=capacity)
     xs, _, _ = as_cloud("global_registration", "source", source)
     xt, _, _ = as_cloud("global_registration", "target", target)
     idx, ok = match_descriptors(fs, ft, vs, vt, mutual=mutual)
@@ -391,7 +613,7 @@ def _crop_pair(n_points: int, keep: float, seed: int):
 
 def _measure_global(n_points: int = 2600, angle_deg: float = 60.0, overlap: float = 0.7, seed: int = 0,
                     n_hypotheses: int = 16384, radius: float = 0.025, distance: float = 0.01,
-                    refine_points: int = 10000) -> dict:
+                    refine_points: int = 10000, descriptor: str = "fpfh") -> dict:
     """The tour/test scene of issue 4 item 2: 60 deg, 70 % overlap, FPFH + RANSAC, then trimmed ICP.
 
     FPFH + RANSAC run on crops of ``n_points`` samples; the point-to-plane ICP refinement on denser
@@ -405,7 +627,7 @@ def _measure_global(n_points: int = 2600, angle_deg: float = 60.0, overlap: floa
     xs, xt = _crop_pair(n_points, keep, seed)
     src = (xs - shift) @ r  # target = R src + shift
     res = global_registration(jax.random.key(seed), jnp.asarray(src), jnp.asarray(xt), radius=radius,
-                              distance=distance, n_hypotheses=n_hypotheses, refine=None)
+                              distance=distance, n_hypotheses=n_hypotheses, refine=None, descriptor=descriptor)
     ds, dt = _crop_pair(refine_points, keep, seed + 10)
     dsrc = (ds - shift) @ r
     fine = icp(jnp.asarray(dsrc), jnp.asarray(dt), method="point_to_plane", init_R=res.coarse.R, init_t=res.coarse.t,
