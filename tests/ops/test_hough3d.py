@@ -166,22 +166,48 @@ def test_breakdown_fails_closed(data):
 
 
 def test_float32_and_vmap():
-    """Float32 through the vmapped program: the scene's planes and sphere as in float64, the
-    uniform cloud empty; one batch of two clouds, fixed capacity."""
+    """Float32 through one vmapped program over three clouds of one capacity: the scene (with a
+    NaN written into one of its valid slots: inside jit that point is skipped, not propagated),
+    the uniform cloud (nothing) and an all-invalid cloud (nothing, no NaN leaking into ``valid``).
+    The scene's planes and sphere come out as in float64."""
     xyz, valid, planes, (centre, radius) = scene()
-    X = jnp.asarray(np.stack([xyz, uniform()]).astype(np.float32))
-    V = jnp.asarray(np.stack([valid, np.ones(N_PTS, bool)]))
+    x0 = xyz.copy()
+    x0[7] = np.nan
+    X = jnp.asarray(np.stack([x0, uniform(), uniform(6)]).astype(np.float32))
+    V = jnp.asarray(np.stack([valid, np.ones(N_PTS, bool), np.zeros(N_PTS, bool)]))
     f = jax.jit(jax.vmap(lambda x, v: fsjax.ops.hough_planes3d(fsjax.Points(x, valid=v), **PLANE_KW)))
     res = f(X, V)
-    assert res.table.shape == (2, 4, 8) and res.table.dtype == jnp.float32
-    assert int(res.valid[0].sum()) == 3 and not bool(res.valid[1].any())
+    assert res.table.shape == (3, 4, 8) and res.table.dtype == jnp.float32
+    assert np.asarray(res.valid.sum(-1)).tolist() == [3, 0, 0]
+    assert not bool(res.truncated.any())
     one = jax.tree_util.tree_map(lambda a: a[0], res)
     err = plane_errors(one, planes)
     assert np.all(err[:, 0] <= 0.5) and np.all(err[:, 1] <= 0.005), err
-    sph = fsjax.ops.hough_spheres3d(fsjax.Points(X[0], valid=V[0]), **SPHERE_KW)
+    sph = fsjax.ops.hough_spheres3d(fsjax.Points(X[0].at[7].set(0.0), valid=V[0]), **SPHERE_KW)
     assert int(sph.valid.sum()) == 1
     row = np.asarray(sph.table[0], np.float64)
     assert np.linalg.norm(row[:3] - centre) <= 0.002 and abs(row[3] - radius) <= 0.002
+
+
+def test_given_normals_and_capacity(data):
+    """A cloud's own normals are used (here exact ones on the surfaces, zero (none) on the clutter: those
+    points do not vote but still count), with the same answer; a capacity below the number of
+    planes keeps the best ones and says ``truncated``."""
+    xyz, valid, planes, (centre, radius) = data
+    nrm = np.zeros_like(xyz)
+    nrm[:500] = planes[0][0]
+    nrm[500:900] = planes[1][0]
+    nrm[900:1250] = planes[2][0]
+    nrm[1250:1850] = (xyz[1250:1850] - centre) / np.linalg.norm(xyz[1250:1850] - centre, axis=1, keepdims=True)
+    res = fsjax.ops.hough_spheres3d(fsjax.Points(xyz, valid=valid, normals=nrm), **SPHERE_KW)
+    assert int(res.valid.sum()) == 1
+    row = np.asarray(res.table[0])
+    assert np.linalg.norm(row[:3] - centre) <= 0.002 and abs(row[3] - radius) <= 0.002
+    two = fsjax.ops.hough_planes3d(fsjax.Points(xyz, valid=valid), max_planes=2)
+    assert bool(two.truncated) and int(two.valid.sum()) == 2
+    # the two kept are the two with the most votes (the floor, then the wall or the patch)
+    assert np.all(np.diff(np.asarray(two["votes"])) <= 0)
+    assert abs(float(two["nz"][0])) > 0.999
 
 
 def test_bad_input_raises():
