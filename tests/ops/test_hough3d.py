@@ -30,10 +30,10 @@ def _tilted():
     return n / np.linalg.norm(n), -0.4
 
 
-def scene(seed=0, clutter=300):
+def scene(seed=0, clutter=300, noise=NOISE):
     """Floor z = -0.6 (500 points), wall x = 0.8 (400), a tilted 1.2 x 1.2 patch (350), a sphere of
     radius 0.35 at (-0.3, 0.2, 0.1) (600), ``clutter`` uniform points in [-1, 1]^3; the rest of
-    the ``N_PTS`` slots invalid. Noise 0.004 on every coordinate."""
+    the ``N_PTS`` slots invalid. Gaussian noise (0.004) on every coordinate."""
     rng = np.random.default_rng(seed)
     n3, d3 = _tilted()
     a = np.cross(n3, [0.0, 0.0, 1.0])
@@ -49,7 +49,7 @@ def scene(seed=0, clutter=300):
              centre + radius * w,
              rng.uniform(-1, 1, (clutter, 3))]
     xyz = np.concatenate(parts)
-    xyz = xyz + NOISE * rng.normal(size=xyz.shape)
+    xyz = xyz + noise * rng.normal(size=xyz.shape)
     m = len(xyz)
     assert m <= N_PTS
     valid = np.r_[np.ones(m, bool), np.zeros(N_PTS - m, bool)]
@@ -151,7 +151,8 @@ def test_uniform_cloud_gives_nothing():
 
 def test_breakdown_fails_closed(data):
     """Where the methods stop: a sphere outside the radius range is not reported as another
-    sphere, and a plane with fewer points than min_votes above its clutter is not found."""
+    sphere, a plane with fewer points than min_votes above its clutter is not found, and
+    planes noisier than about 0.3 offset bins are refused rather than fitted loosely."""
     xyz, valid, _, (centre, radius) = data
     pts = fsjax.Points(xyz, valid=valid)
     out = fsjax.ops.hough_spheres3d(pts, r_min=0.5, r_max=0.6, max_spheres=3)
@@ -163,6 +164,16 @@ def test_breakdown_fails_closed(data):
     t = np.asarray(res.table)[np.asarray(res.valid)]
     assert len(t) == 2
     assert np.max(np.abs(t[:, :3] @ _tilted()[0])) < 0.9
+    # noise against the offset bin (width 0.051 here): up to sigma 0.010 all three planes within
+    # 0.15 deg; from sigma ~0.3 bin widths a plane's 3-sigma band no longer fits in a bin and it
+    # is refused (sigma 0.012: 2 of 3; 0.016 and up: none); the sphere's bin is 0.1 wide and
+    # it is still found within 0.003
+    xyz_n, valid_n, _, (centre, radius) = scene(noise=0.02)
+    noisy = fsjax.Points(xyz_n, valid=valid_n)
+    assert not bool(fsjax.ops.hough_planes3d(noisy, **PLANE_KW).valid.any())
+    sph = fsjax.ops.hough_spheres3d(noisy, **SPHERE_KW)
+    assert int(sph.valid.sum()) == 1
+    assert np.linalg.norm(np.asarray(sph.table[0, :3]) - centre) < 0.005
 
 
 def test_float32_and_vmap():
