@@ -76,3 +76,4 @@ from .match3d._pose3d import *  # noqa: F403
 from .match3d._fmellin3d import *  # noqa: F403
 from .match3d._chamfer3d import *  # noqa: F403
 from .match3d._shdesc import *  # noqa: F403
+from .match3d._hough3d import *  # noqa: F403
