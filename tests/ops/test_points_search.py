@@ -421,3 +421,22 @@ def test_index_built_once_reused_exact_with_coarse_levels():
     _check_radius(ref, q2, r, 32, out, valid=valid)
     with pytest.raises(ValueError, match="query_radius: argument 'radius'"):
         query_radius(rix, jnp.asarray(q2), 2 * float(rix.h), 32)
+
+
+def test_query_knn_max_dist_gate():
+    """``max_dist``: the neighbours within the gate are the exact ones, the rest missing; far queries
+    (here a whole second cloud 1 unit away) are settled without the brute-force scan."""
+    from fsjax.ops.points._search import build_index, query_knn
+
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(0, 1, (3000, 3)) * np.array([1.0, 1.0, 0.02])  # a thin slab
+    qry = np.r_[rng.uniform(0, 1, (500, 3)) * np.array([1.0, 1.0, 0.02]),
+                rng.uniform(0, 1, (500, 3)) + np.array([0.0, 0.0, 1.0])]
+    idx, d2 = knn(ref, qry, 4)
+    g = build_index(jnp.asarray(ref), k=4, coarse=True)
+    for gate in (0.02, 0.05, 1.2):
+        gi, gd = query_knn(g, jnp.asarray(qry), 4, max_dist=gate)
+        inside = np.asarray(d2) <= gate**2
+        assert np.array_equal(np.asarray(gi)[inside], np.asarray(idx)[inside])
+        assert np.all(np.asarray(gi)[~inside] == -1) and np.all(np.isinf(np.asarray(gd)[~inside]))
+    assert inside[:500].mean() > 0.9 and not inside[500:].all()  # both kinds of query occur

@@ -587,7 +587,7 @@ def _fixed_slots(k: int) -> int:
 _B2 = 32  # queries per batch in the fallback passes
 
 
-def _query_grid_knn(g: GridIndex, qry, k, approx=None):
+def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
     """Exact k-NN on the index ``g``; with ``approx`` (a traced bool) True, the approximate mode.
 
     Exact: each pass answers the queries whose k-th distance it certifies; the rest go to the
@@ -601,12 +601,15 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None):
     eps = jnp.finfo(qry.dtype).eps
     S = _slots(k)
 
+    def gated(b):  # with a gate: every point within it lies inside a block reaching past it
+        return jnp.zeros(b.shape, bool) if gate2 is None else (b * b) * (1 - 64 * eps) >= gate2
+
     def ring_pass(grid, q, ring, S):
         start, length, bound = grid.runs(q, ring)
         d2, pos, _, ok = _scan_cells(grid.spts, q, start, length, k, S)
         b = jnp.maximum(bound, 0.0)
         # certificate: the k-th distance is strictly inside the searched block
-        cert = ok & (d2[:, -1] < (b * b) * (1 - 64 * eps))
+        cert = ok & ((d2[:, -1] < (b * b) * (1 - 64 * eps)) | gated(b))
         return d2, jnp.where(jnp.isfinite(d2), grid.order[pos], -1), cert
 
     def done(d2, cert):  # answered: certified, or (approximate mode) k points found in the block
@@ -636,7 +639,7 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None):
             full = cum[:, -1:] <= C  # else the C candidates are a part of the block: discarded, not answered
             d2 = jnp.where(full, d2, jnp.inf)
             b = jnp.maximum(bound, 0.0)
-            cert = d2[:, -1] < (b * b) * (1 - 64 * eps)
+            cert = (d2[:, -1] < (b * b) * (1 - 64 * eps)) | (gated(b) & full[:, 0])
             if sel_ok is not None:
                 cert = cert & sel_ok
             return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cert, ~full[:, 0]
@@ -669,6 +672,9 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None):
     # still not answered (far from the cloud, or fewer than k points nearby): a brute-force scan
     refs = _brute_refs(g.ref, g.valid)
     d2, idx = _redo(~done(d2, cert), _B2, lambda sel: _brute_queries(refs, qry[sel], k)[:2], (d2, idx))
+    if gate2 is not None:  # beyond the gate: not searched exactly, reported missing
+        far = d2 > gate2
+        d2, idx = jnp.where(far, jnp.inf, d2), jnp.where(far, -1, idx)
     return idx, d2
 
 
@@ -746,7 +752,7 @@ def build_index(ref_xyz: Any, ref_valid: Any = None, *, k: int = 8, cell: Any = 
     return g._replace(coarse=g2._replace(coarse=_grid(ref, valid, 4 * g2.h)), reps=reps)
 
 
-def query_knn(index: GridIndex, query_xyz: Any, k: int, *, approx: Any = None):
+def query_knn(index: GridIndex, query_xyz: Any, k: int, *, approx: Any = None, max_dist: Any = None):
     """Exact k nearest indexed points of each query (as :func:`knn`, on a prebuilt index).
 
     ``k`` static, ``1 <= k <= 64``. Returns ``(idx (M, k) int32, dist2 (M, k))`` with -1 /
@@ -760,6 +766,11 @@ def query_knn(index: GridIndex, query_xyz: Any, k: int, *, approx: Any = None):
     (one point per cell, needs ``coarse=True``). For the early iterations of ICP, whose final
     iterations then run exact. Queries within about one cell of the cloud get the exact answer
     either way.
+
+    ``max_dist`` (a length, may be traced; default none): only neighbours within it are wanted
+    (ICP's correspondence gate). Those are exact; the slots beyond it are ``-1`` / ``inf``. A query
+    far from the cloud is then settled by the first cell block that reaches past ``max_dist``
+    instead of a brute-force scan.
     """
     qry = jnp.asarray(query_xyz, index.ref.dtype)
     k = int(k)
@@ -767,7 +778,8 @@ def query_knn(index: GridIndex, query_xyz: Any, k: int, *, approx: Any = None):
         raise ValueError(f"query_knn: argument 'k' must be in [1, 64], got {k}")
     if qry.shape[0] == 0 or index.ref.shape[0] == 0:
         return jnp.full((qry.shape[0], k), -1, jnp.int32), jnp.full((qry.shape[0], k), jnp.inf, qry.dtype)
-    return _query_grid_knn(index, qry, k, None if approx is None else jnp.asarray(approx, bool))
+    gate2 = None if max_dist is None else jnp.asarray(max_dist, qry.dtype) ** 2
+    return _query_grid_knn(index, qry, k, None if approx is None else jnp.asarray(approx, bool), gate2)
 
 
 def query_radius(index: GridIndex, query_xyz: Any, radius: Any, capacity: int):
