@@ -62,13 +62,16 @@ def test_thin_gaussian_mass_and_centroid_beat_the_unfiltered_splat(dtype, tol_ma
         return mass, err
 
     mass, err = run(0.6)
-    mass0, err0 = run(0.0)
     w = 1.0 / (1.0 + np.exp(-2.0))
-    print(f"\nthin Gaussian ({np.dtype(dtype).name}): centroid error max {err.max():.2e} voxel "
-          f"(no prefilter: {err0.max():.3f}); mass error {np.abs(mass - w).max():.1e}")
+    print(f"\nthin Gaussian ({np.dtype(dtype).name}): centroid error max {err.max():.2e} voxel; mass error "
+          f"{np.abs(mass - w).max():.1e}")
     np.testing.assert_allclose(mass, w, atol=tol_mass)
-    np.testing.assert_allclose(mass0, w, atol=tol_mass)  # the discrete normalisation holds the mass either way
-    assert err.max() < 4e-3 and err0.max() > 0.05 and err.max() < err0.max() / 10
+    assert err.max() < 4e-3
+    if dtype == np.float64:  # the null (one dtype: the same program)
+        mass0, err0 = run(0.0)
+        print(f"no prefilter: centroid error max {err0.max():.3f} voxel")
+        np.testing.assert_allclose(mass0, w, atol=tol_mass)  # the discrete normalisation holds the mass either way
+        assert err0.max() > 0.05 and err.max() < err0.max() / 10
 
 
 def test_anisotropic_second_moments_equal_the_covariance():
