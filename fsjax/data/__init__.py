@@ -77,12 +77,14 @@ def fandisk():
     return _mesh("fandisk")
 
 
-def surface_points(name: str, n: int, seed: int = 0) -> np.ndarray:
+def surface_points(name: str, n: int, seed: int = 0, *, normals: bool = False):
     """``(n, 3)`` area-weighted samples of a bundled mesh's surface (numpy float64, deterministic).
 
     Triangles are drawn with probability proportional to their area, points uniformly inside
     by the square-root barycentric rule (Turk 1990, "Generating random points in triangles",
     Graphics Gems). The same ``(name, n, seed)`` gives the same points on every machine.
+    ``normals=True`` returns ``(points, normals)``: each sample's triangle's unit normal (by
+    the faces' winding; the same points as without).
 
     Example:
         >>> from fsjax.data import surface_points
@@ -100,4 +102,8 @@ def surface_points(name: str, n: int, seed: int = 0) -> np.ndarray:
     tri = rng.choice(len(f), size=int(n), p=area / area.sum())
     r1, r2 = rng.random(int(n)), rng.random(int(n))
     s = np.sqrt(r1)
-    return (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
+    p = (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
+    if not normals:
+        return p
+    nrm = np.cross(b - a, c - a)[tri]
+    return p, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)

@@ -69,6 +69,7 @@ from .volume._resample3d import *  # noqa: F403
 from .volume._sdf import *  # noqa: F403
 from .volume._tsdf import *  # noqa: F403
 from .volume._watershed3d import *  # noqa: F403
+from .match3d._gaussvox import *  # noqa: F403
 from .match3d._transforms import *  # noqa: F403
 from .match3d._fft3d import *  # noqa: F403
 from .match3d._refine3d import *  # noqa: F403

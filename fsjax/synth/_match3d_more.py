@@ -30,9 +30,11 @@ MATCH3D_MORE_METHODS = ("fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3
 MATCH3D_MORE_NOT_YET = {
     **{("depth", m): "not yet: depth -> points exists (depth_to_points), the partial-view scene is not built"
        for m in MATCH3D_MORE_METHODS},
-    **{("gaussians", m): "not yet: Gaussians -> voxel needs a footprint splat" for m in MATCH3D_MORE_METHODS},
     ("mesh", "fourier_mellin_z3d+lm_rotation_z3d"): "not yet: lm_rotation_z3d does not converge within 50 steps "
     "on the mesh row's volumes (final NCC 0.94-0.98, seeds 0-2)",
+    ("gaussians", "fourier_mellin_z3d+lm_rotation_z3d"): "not yet: measured once (0.40, max 0.86 degrees from an FM "
+    "start of 1.36, seeds 0-2; closed yes) but left out of the tests' time budget (6.7 s, the costliest cell of "
+    "the row)",
     ("mesh", "chamfer3d"): "not yet: the mesh row's scene spreads its 20,000 samples over the bunny and the "
     "clutter, so the bunny's density (and its occupancy at a fixed level) differs from the template's",
 }
@@ -43,6 +45,8 @@ MATCH3D_MORE_CELL_TOL = {
     ("voxel", "fourier_mellin_z3d+lm_rotation_z3d"): 1.2, ("points", "fourier_mellin_z3d+lm_rotation_z3d"): 1.5,
     # voxels (chamfer3d)
     ("voxel", "chamfer3d"): 0.2, ("points", "chamfer3d"): 0.4,
+    # gaussians: about 1.7x the largest error over seeds 0-2 (1.98 degrees; 0.24 voxel)
+    ("gaussians", "fourier_mellin_z3d"): 3.5, ("gaussians", "chamfer3d"): 0.4,
 }
 
 

@@ -23,6 +23,7 @@ from ..types import (
     DepthStack,
     Feature,
     FringeStack,
+    Gaussians,
     GrayStack,
     Image,
     Lab,
@@ -350,6 +351,21 @@ def _pool_rig(variant, size):
     R, t = look_at([100.0 + 10.0 * variant, 0.0, 0.0], [0.0, 0.0, 500.0], up=[0.0, -1.0, 0.0])
     proj = Camera.from_intrinsics(80.0, 80.0, 31.5, 23.5, width=64, height=48, R=R, t=t)
     return StructuredLightRig(cam, proj)
+
+
+@register_pool(Gaussians)
+def _gaussians(variant, size):
+    """12 anisotropic Gaussians inside the default 16^3 voxel grid: means in [3, 12], scales
+    0.25-0.8, random rotations, opacities 0.3-0.9 (variant 1: another draw); the last slot invalid."""
+    rng = np.random.default_rng(300 + variant)
+    n = 12
+    q = rng.normal(size=(n, 4))
+    valid = np.ones(n, bool)
+    valid[-1] = False
+    return Gaussians(jnp.asarray(rng.uniform(3.0, 12.0, (n, 3))), jnp.asarray(np.log(rng.uniform(0.25, 0.8, (n, 3)))),
+                     jnp.asarray(q / np.linalg.norm(q, axis=1, keepdims=True)),
+                     jnp.asarray(np.log(1 / rng.uniform(0.3, 0.9, n) - 1) * -1.0), jnp.asarray(rng.uniform(0, 1, (n, 1, 3))),
+                     valid=jnp.asarray(valid))
 
 
 @register_pool(PointValues)

@@ -94,8 +94,9 @@ def test_to_points_and_to_voxel_accept_every_structure():
     g = fsjax.Gaussians(jnp.zeros((2, 3)), jnp.zeros((2, 3)), jnp.asarray([[1.0, 0, 0, 0]] * 2), jnp.zeros(2),
                         jnp.ones((2, 3)))
     assert ops.to_points(g).xyz.shape == (2, 3)
-    with pytest.raises(TypeError, match="Gaussians -> voxel is not implemented yet"):
-        ops.to_voxel(g, (1.0, 1.0, 1.0), shape=(2, 2, 2))
+    # Gaussians: the footprint splat (tests/ops/test_match3d_gaussvox.py)
+    gv = ops.to_voxel(g, (1.0, 1.0, 1.0), shape=(2, 2, 2))
+    assert bool(jnp.all(gv.data == ops.gaussians_to_volume(g, shape=(2, 2, 2)).data)) and float(gv.data.sum()) > 0
     with pytest.raises(ValueError, match="to_voxel: argument 'x' is a Volume of spacing"):
         ops.to_voxel(vol, (2.0, 1.0, 1.0))
     with pytest.raises(ValueError, match="argument 'shape' is required"):

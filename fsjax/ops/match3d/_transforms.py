@@ -1,4 +1,5 @@
-"""Transforms between the 3-D structures: points -> voxels, and the ``to_points`` / ``to_voxel``
+"""Transforms between the 3-D structures: points -> voxels (Gaussians -> voxels:
+:mod:`fsjax.ops.match3d._gaussvox`), and the ``to_points`` / ``to_voxel``
 entry points that accept any structure (the rows of the 3-D matching grid).
 
 Conventions:
@@ -32,6 +33,7 @@ from .._common import check_grid, check_one
 from ..measure3d._camera import depth_to_points
 from ..mesh._voxelize import mesh_to_volume
 from ..points._search import sample_surface
+from ._gaussvox import gaussians_to_volume
 
 __all__ = ["points_to_volume", "to_points", "to_voxel"]
 
@@ -162,10 +164,11 @@ def to_voxel(x: Any, /, spacing: tuple[float, float, float], *, shape: tuple[int
     * ``Mesh``: ``mesh_kind="surface"`` (default): ``n`` area-weighted surface samples splatted,
       a surface density (cheap: ``O(n)``); ``"occupancy"`` or ``"sdf"``: the exact inside test /
       signed distance of :func:`mesh_to_volume` (``O(voxels x faces)``: small meshes only).
-    * ``Gaussians``: not yet (their extents need a footprint splat); ``TypeError``.
+    * ``Gaussians``: footprint splat (:func:`gaussians_to_volume` with its defaults: each
+      Gaussian's opacity as a mass spread by its density, prefiltered by 0.6 voxel).
 
     Args:
-      x: the structure (one instance).
+      x: the structure (one instance): ``Volume``, ``Points``, ``Mesh``, ``Depth`` or ``Gaussians``.
       spacing: ``(dz, dy, dx)`` in the structure's unit.
       shape: ``(D, H, W)``; required for everything but a ``Volume``.
       origin: ``(x0, y0, z0)``, the centre of voxel ``[0, 0, 0]``.
@@ -186,9 +189,6 @@ def to_voxel(x: Any, /, spacing: tuple[float, float, float], *, shape: tuple[int
             raise ValueError(f"{op}: argument 'x' is a Volume of spacing {x.spacing}, not {sp}; resampling is not "
                              f"done here")
         return x
-    if isinstance(x, Gaussians):
-        raise TypeError(f"{op}: argument 'x': Gaussians -> voxel is not implemented yet (needs a footprint "
-                        f"splat); use to_points(x) for their means")
     if shape is None:
         raise ValueError(f"{op}: argument 'shape' is required for a {type(x).__name__}")
     if isinstance(x, Mesh):
@@ -198,6 +198,9 @@ def to_voxel(x: Any, /, spacing: tuple[float, float, float], *, shape: tuple[int
         x = sample_surface(x, n=check_static_int(op, "n", n, lo=1), seed=seed)
     elif isinstance(x, Depth):
         x = depth_to_points(x)
+    elif isinstance(x, Gaussians):
+        return gaussians_to_volume(x, shape=shape, spacing=sp, origin=origin)
     if not isinstance(x, Points):
-        raise TypeError(f"{op}: argument 'x' must be Volume, Points, Mesh or Depth; got {type(x).__name__}")
+        raise TypeError(f"{op}: argument 'x' must be Volume, Points, Mesh, Depth or Gaussians; got "
+                        f"{type(x).__name__}")
     return points_to_volume(x, shape=shape, spacing=sp, origin=origin)
