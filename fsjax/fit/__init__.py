@@ -8,6 +8,8 @@ The fits, by module (every public name is re-exported here, ``fsjax.fit.<name>``
   (:class:`MultiStartResult`);
 * :mod:`.global_reg` -- FPFH, correspondence RANSAC (:class:`CorrespondenceRansacResult`),
   global registration (:class:`GlobalResult`);
+* :mod:`.cross` -- registration across structures (mesh, scan, depth, volume, Gaussians):
+  :func:`register_cross`;
 * :mod:`.ransac3d` -- RANSAC plane / line / sphere / cylinder (:class:`RansacResult`);
 * :mod:`.primitives3d` -- closed-form and LM 3-D primitives (:class:`Fit3D`), distances and
   angles, model selection (:class:`ModelSelection`);
@@ -42,6 +44,7 @@ from . import twoview as _twoview
 from .bundle_adjust import *  # noqa: F403
 from .calibrate import *  # noqa: F401,F403
 from .chessboard import *  # noqa: F401,F403
+from .cross import *  # noqa: F401,F403
 from .frames import *  # noqa: F401,F403
 from .global_reg import *  # noqa: F401,F403
 from .icp import *  # noqa: F401,F403

@@ -6,6 +6,8 @@ from it. A family that introduces a sort registers its builder with
 :func:`register_pool`.
 """
 
+from ._cross import cad_scan_pair as cad_scan_pair
+from ._cross import partial_scan as partial_scan
 from ._defects import DEFECT_KINDS as DEFECT_KINDS
 from ._defects import Defect as Defect
 from ._defects import surface_defects as surface_defects
