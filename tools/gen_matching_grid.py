@@ -159,11 +159,12 @@ def main() -> None:
     L += ["", "## Not yet (issue 17)", "",
           "Methods not yet: shape-based 3-D (gradient directions), generalised Hough 3-D, "
           "curvature / shape-index matching, chamfer with rotation (`chamfer3d` is translation only); an NCC "
-          "pyramid. Structures: depth maps (partial views). `fuse_to_voxel`. Built outside this table (their "
+          "pyramid. Structures: depth maps (partial views). Built outside this table (their "
           "own scenes and tests): parametric Hough for planes and spheres (`hough_planes3d`, `hough_spheres3d`, "
           "tests/ops/test_hough3d.py), the spherical-harmonic descriptor and Harris-3D "
           "(tests/ops/test_match3d_desc.py), spin images / SHOT / FPFH + RANSAC (+ ICP) and cross-structure "
-          "registration `register_cross` (a CAD mesh against a partial scan; docs/registration.md). The ICP "
+          "registration `register_cross` (a CAD mesh against a partial scan; docs/registration.md) and `fuse_to_voxel` "
+          "(mixed structures on one grid). The ICP "
           "variants (`fsjax.fit`) are not cells of this table.", ""]
     Path(args.out).write_text("\n".join(L))
     print("wrote", args.out)

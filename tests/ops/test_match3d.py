@@ -219,3 +219,36 @@ def test_grid_cell_float32():
     r = run_grid_cell("voxel", "ncc3d+lk_translation3d", dtype=jnp.float32)
     assert r["match"].t.dtype == jnp.float32 and r["valid"]
     assert r["error"] <= MATCH3D_CELL_TOL[("voxel", "ncc3d+lk_translation3d")]
+
+
+def test_fuse_to_voxel_mixed_structures():
+    """A mesh, a point cloud and a Gaussian of one scene fused: each carries its weight's share of the
+    mass, the fused centroid is the weighted mean of the items' centroids (ground truth here: each
+    item's own centroid on the grid), and bad items fail with the op and the item's position."""
+    sq = fsjax.Mesh(jnp.asarray([[0.0, 0, 2], [6, 0, 2], [6, 6, 2], [0, 6, 2]]), jnp.asarray([[0, 1, 2], [0, 2, 3]]))
+    pts = fsjax.Points(jnp.asarray(np.random.default_rng(0).uniform(1, 5, (200, 3)) * [1, 1, 0] + [0, 0, 3]))
+    g = fsjax.Gaussians(jnp.asarray([[3.0, 3.0, 4.0]]), jnp.log(jnp.full((1, 3), 0.7)), jnp.asarray([[1.0, 0, 0, 0]]),
+                        jnp.asarray([5.0]), jnp.ones((1, 3)))
+    sp, shp = (1.0, 1.0, 1.0), (7, 8, 8)
+    fused = ops.fuse_to_voxel([sq, pts, g], sp, shape=shp, weights=[1.0, 2.0, 1.0], n=3000)
+    assert abs(float(fused.data.sum()) - 4.0) < 1e-9
+
+    def zc(v):  # centroid along z (index 0) of a grid
+        z = np.arange(shp[0])[:, None, None]
+        return float((np.asarray(v) * z).sum() / np.asarray(v).sum())
+
+    parts = [ops.to_voxel(x, sp, shape=shp, n=3000, seed=i).data for i, x in enumerate((sq, pts, g))]
+    want = (zc(parts[0]) + 2 * zc(parts[1]) + zc(parts[2])) / 4
+    assert abs(zc(fused.data) - want) < 1e-9 and abs(zc(parts[0]) - 2) < 1e-9 and abs(zc(parts[1]) - 3) < 1e-9
+    # null: summing without normalising lets the 3,000-sample mesh outweigh the rest
+    raw = ops.fuse_to_voxel([sq, pts, g], sp, shape=shp, normalise=False, n=3000)
+    assert zc(raw.data) < 2.2 < zc(fused.data)
+    # an item entirely off the grid has no mass: NaN, not silently dropped
+    off = fsjax.Points(jnp.asarray([[100.0, 0, 0]]))
+    assert bool(jnp.all(jnp.isnan(ops.fuse_to_voxel([pts, off], sp, shape=shp).data)))
+    with pytest.raises(TypeError, match=r"fuse_to_voxel: argument 'items' \[1\]"):
+        ops.fuse_to_voxel([pts, jnp.zeros((3, 3))], sp, shape=shp)
+    with pytest.raises(ValueError, match="fuse_to_voxel: argument 'weights'"):
+        ops.fuse_to_voxel([pts], sp, shape=shp, weights=[-1.0])
+    with pytest.raises(ValueError, match="fuse_to_voxel: argument 'items'"):
+        ops.fuse_to_voxel(pts, sp, shape=shp)
