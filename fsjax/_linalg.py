@@ -41,7 +41,8 @@ from lineax._solver.misc import (  # the helpers lineax's own dense solvers use
     unravel_solution,
 )
 
-__all__ = ["eigh_small", "solve_spd_eig", "solve_small", "lstsq_small", "SmallQR", "levenberg_marquardt"]
+__all__ = ["eigh_small", "solve_spd_eig", "solve_small", "lstsq_small", "SmallQR", "levenberg_marquardt",
+           "quat_to_rotmat"]
 
 
 def _sweeps(n: int) -> int:
@@ -260,3 +261,13 @@ def levenberg_marquardt(rtol, atol, *, linear_solver=None, verbose=False):
         kw["verbose"] = _lm_progress
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol, **kw)
     return eqx.tree_at(lambda s: s.search, solver, _TrustRegionInDtype())
+
+
+def quat_to_rotmat(q):
+    """Rotation matrix of a unit quaternion ``(w, x, y, z)`` (Hamilton, active), batched over leading axes."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return jnp.stack([
+        jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)

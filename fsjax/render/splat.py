@@ -64,6 +64,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._checks import check_positive, check_range, check_static_int
+from .._linalg import quat_to_rotmat as _quat_to_rotmat
 from ..types import Camera, Gaussians, is_concrete
 from .camera import world_to_camera
 
@@ -176,15 +177,6 @@ def sh_to_rgb(colors, dirs):
 # ---------------------------------------------------------------------------
 # projection
 # ---------------------------------------------------------------------------
-
-
-def _quat_to_rotmat(q):
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return jnp.stack([
-        jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
 
 
 def _check(g, cam, fn, *, alpha_min, alpha_max, near, dilation_px2):

@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..._checks import check_positive, check_static_int, is_concrete
+from ..._linalg import quat_to_rotmat as _quat_to_rotmat
 from ...registry import poison, register
 from ...types import Gaussians, Volume
 from .._common import check_grid, check_one
@@ -70,15 +71,6 @@ def _bucket(n: int) -> int:
                 return _CHUNK * m
         k *= 2
 
-
-def _quat_to_rotmat(q):
-    """Rotation of a unit quaternion ``(w, x, y, z)`` (Hamilton, active)."""
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    return jnp.stack([
-        jnp.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        jnp.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        jnp.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
 
 
 def _inv3_sym(c):
