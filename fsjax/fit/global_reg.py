@@ -112,6 +112,15 @@ def _fpfh_core(xyz, valid, normals, radius, *, capacity, normal_k):
     return jnp.where(good[:, None], f, 0.0), good, truncated
 
 
+def _descriptor_args(fn, points, radius, capacity, normal_k, min_capacity):
+    """The arguments every local descriptor shares, checked: ``(xyz, valid, normals or None, capacity, normal_k)``."""
+    xyz, valid, normals = as_cloud(fn, "points", points)
+    check_positive(fn, "radius", radius)
+    capacity = check_static_int(fn, "capacity", capacity, lo=min_capacity)
+    normal_k = check_static_int(fn, "normal_k", normal_k, lo=3, hi=32)
+    return xyz, valid, None if normals is None else jnp.asarray(normals, xyz.dtype), capacity, int(normal_k)
+
+
 def fpfh(
     points: Points | Float[Array, "N 3"],
     *,
@@ -141,13 +150,8 @@ def fpfh(
         >>> bool(ok1.all()), float(jnp.abs(f1 - f2).max()) < 1e-9   # rotation invariant
         (True, True)
     """
-    fn = "fpfh"
-    xyz, valid, normals = as_cloud(fn, "points", points)
-    check_positive(fn, "radius", radius)
-    capacity = check_static_int(fn, "capacity", capacity, lo=3)
-    normal_k = check_static_int(fn, "normal_k", normal_k, lo=3, hi=32)
-    nrm = None if normals is None else jnp.asarray(normals, xyz.dtype)
-    return _fpfh_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=int(normal_k))
+    xyz, valid, nrm, capacity, normal_k = _descriptor_args("fpfh", points, radius, capacity, normal_k, 3)
+    return _fpfh_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=normal_k)
 
 
 def _tent(x, centres, circular_period=None):
@@ -270,17 +274,13 @@ def spin_images(
         (True, True)
     """
     fn = "spin_images"
-    xyz, valid, normals = as_cloud(fn, "points", points)
-    check_positive(fn, "radius", radius)
+    xyz, valid, nrm, capacity, normal_k = _descriptor_args(fn, points, radius, capacity, normal_k, 3)
     n_alpha = check_static_int(fn, "n_alpha", n_alpha, lo=2, hi=64)
     n_beta = check_static_int(fn, "n_beta", n_beta, lo=2, hi=64)
     check_range(fn, "support_angle", support_angle, 0.0, 180.0, lo_open=True)
-    capacity = check_static_int(fn, "capacity", capacity, lo=3)
-    normal_k = check_static_int(fn, "normal_k", normal_k, lo=3, hi=32)
-    nrm = None if normals is None else jnp.asarray(normals, xyz.dtype)
     cs = jnp.asarray(np.cos(np.deg2rad(float(support_angle))) - 1e-12, xyz.dtype)
     return _spin_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), cs, capacity=capacity,
-                      normal_k=int(normal_k), n_alpha=n_alpha, n_beta=n_beta)
+                      normal_k=normal_k, n_alpha=n_alpha, n_beta=n_beta)
 
 
 _SHOT_COS, _SHOT_AZ, _SHOT_EL, _SHOT_RAD = 11, 8, 2, 2
@@ -354,13 +354,8 @@ def shot(
         >>> bool(ok1.mean() > 0.95), float(jnp.abs(f1 - f2).max()) < 1e-6   # rotation invariant
         (True, True)
     """
-    fn = "shot"
-    xyz, valid, normals = as_cloud(fn, "points", points)
-    check_positive(fn, "radius", radius)
-    capacity = check_static_int(fn, "capacity", capacity, lo=5)
-    normal_k = check_static_int(fn, "normal_k", normal_k, lo=3, hi=32)
-    nrm = None if normals is None else jnp.asarray(normals, xyz.dtype)
-    return _shot_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=int(normal_k))
+    xyz, valid, nrm, capacity, normal_k = _descriptor_args("shot", points, radius, capacity, normal_k, 5)
+    return _shot_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=normal_k)
 
 
 DESCRIPTORS = {"fpfh": fpfh, "spin": spin_images, "shot": shot}
