@@ -41,7 +41,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_choice, check_positive, check_range, check_static_int
 from .._linalg import eigh_small
-from ..ops import estimate_normals, knn
+from ..ops import knn
+from ..ops.points._cloud import normals_from_neighbours
 from ..ops.points._search import _BRUTE_LIMIT, build_index
 from ..types import Points
 from ..types.results import FitResult, WrappedFit
@@ -90,16 +91,18 @@ def _hist(vals, lo, hi, mask):
 
 @functools.partial(jax.jit, static_argnames=("capacity", "normal_k"))
 def _fpfh_core(xyz, valid, normals, radius, *, capacity, normal_k):
+    # one neighbour search serves the normals and the histograms (two searches compiled twice the code)
+    idx, d2 = knn(xyz, xyz, max(capacity, normal_k) + 1, ref_valid=valid)  # includes the point itself
     if normals is None:
-        normals = estimate_normals(Points(xyz, valid=valid), k=normal_k).normals
+        normals = _pca_normals(xyz, valid, idx, normal_k)
         c = jnp.sum(jnp.where(valid[:, None], xyz, 0.0), 0) / jnp.maximum(jnp.sum(valid), 1)
         normals = normals * jnp.where(jnp.sum(normals * (xyz - c), -1) < 0, -1.0, 1.0)[:, None]
     nok = valid & jnp.all(jnp.isfinite(normals), -1)
     normals = jnp.where(nok[:, None], normals, 0.0)
-    idx, d2 = knn(xyz, xyz, capacity + 1, ref_valid=nok)  # includes the point itself
-    idx, d2 = idx[:, 1:], d2[:, 1:]
+    idx, d2 = idx[:, 1:capacity + 1], d2[:, 1:capacity + 1]
     inr = (idx >= 0) & (d2 <= radius**2) & (d2 > 0)
     truncated = inr[:, -1]
+    inr = inr & nok[jnp.maximum(idx, 0)]  # neighbours without a normal take no part
     j = jnp.maximum(idx, 0)
     al, ph, th, ok = _pair_features(xyz[:, None, :], normals[:, None, :], xyz[j], normals[j])
     m = (inr & ok).astype(xyz.dtype)
@@ -170,12 +173,20 @@ def _tent(x, centres, circular_period=None):
     return jnp.maximum(0.0, 1.0 - d / h)
 
 
-def _neighbourhoods(xyz, valid, radius, capacity):
-    """Neighbours within ``radius`` among the ``capacity`` nearest (the point itself excluded)."""
-    idx, d2 = knn(xyz, xyz, capacity + 1, ref_valid=valid)
-    idx, d2 = idx[:, 1:], d2[:, 1:]
+def _pca_normals(xyz, valid, idx, normal_k):
+    """PCA normals (:func:`fsjax.ops.estimate_normals`, unoriented) of the first ``normal_k`` columns of
+    a kNN answer that includes each point itself."""
+    return normals_from_neighbours(jnp.where(valid[:, None], xyz, 0.0), valid, idx[:, :normal_k])
+
+
+def _neighbourhoods(xyz, valid, radius, capacity, normal_k):
+    """Neighbours within ``radius`` among the ``capacity`` nearest (the point itself excluded), and
+    the ``normal_k`` nearest (itself included) for :func:`_pca_normals`: one search for both."""
+    idx, d2 = knn(xyz, xyz, max(capacity, normal_k) + 1, ref_valid=valid)
+    near = idx[:, :normal_k]
+    idx, d2 = idx[:, 1:capacity + 1], d2[:, 1:capacity + 1]
     inr = (idx >= 0) & (d2 <= radius**2) & (d2 > 0) & valid[:, None]
-    return jnp.maximum(idx, 0), d2, inr, inr[:, -1]
+    return jnp.maximum(idx, 0), d2, inr, inr[:, -1], near
 
 
 def _majority_sign(v, D, m):
@@ -189,14 +200,15 @@ def _majority_sign(v, D, m):
     return v * jnp.where(s < 0, -1.0, 1.0)[:, None]
 
 
-def _oriented_normals(xyz, valid, normals, D, m, normal_k):
-    """PCA normals (or the given ones), each turned to the side where most of its neighbours lie.
+def _oriented_normals(xyz, valid, normals, D, m, near):
+    """PCA normals of the neighbours ``near`` (or the given normals), each turned to the side where
+    most of its neighbours lie.
 
     A rule of the local geometry alone, so two scans of one surface orient a normal alike wherever
     their neighbourhoods agree (the centroid rule of :func:`fpfh` depends on the crop).
     """
     if normals is None:
-        normals = estimate_normals(Points(xyz, valid=valid), k=normal_k).normals
+        normals = _pca_normals(xyz, valid, near, near.shape[1])
     nok = valid & jnp.all(jnp.isfinite(normals), -1)
     normals = jnp.where(nok[:, None], normals, 0.0)
     return _majority_sign(normals, D, m), nok
@@ -204,9 +216,9 @@ def _oriented_normals(xyz, valid, normals, D, m, normal_k):
 
 @functools.partial(jax.jit, static_argnames=("capacity", "normal_k", "n_alpha", "n_beta"))
 def _spin_core(xyz, valid, normals, radius, cos_support, *, capacity, normal_k, n_alpha, n_beta):
-    j, d2, inr, truncated = _neighbourhoods(xyz, valid, radius, capacity)
+    j, d2, inr, truncated, near = _neighbourhoods(xyz, valid, radius, capacity, normal_k)
     D = xyz[j] - xyz[:, None, :]
-    n, nok = _oriented_normals(xyz, valid, normals, D, inr, normal_k)
+    n, nok = _oriented_normals(xyz, valid, normals, D, inr, near)
     # beta's sign follows the normal's: orient away from the cloud's centroid (as fpfh); the
     # local majority rule flips on flat patches and lost 2 of 3 crop pairs (docs/registration.md)
     c = jnp.sum(jnp.where(valid[:, None], xyz, 0.0), 0) / jnp.maximum(jnp.sum(valid), 1)
@@ -289,7 +301,7 @@ _SHOT_COS, _SHOT_AZ, _SHOT_EL, _SHOT_RAD = 11, 8, 2, 2
 @functools.partial(jax.jit, static_argnames=("capacity", "normal_k"))
 def _shot_core(xyz, valid, normals, radius, *, capacity, normal_k):
     dt = xyz.dtype
-    j, d2, inr, truncated = _neighbourhoods(xyz, valid, radius, capacity)
+    j, d2, inr, truncated, near = _neighbourhoods(xyz, valid, radius, capacity, normal_k)
     D = xyz[j] - xyz[:, None, :]
     dist = jnp.sqrt(jnp.where(inr, d2, 0.0))
     # local reference frame: covariance about the point itself, weighted by (radius - distance)
@@ -299,7 +311,7 @@ def _shot_core(xyz, valid, normals, radius, *, capacity, normal_k):
     ex = _majority_sign(V[..., 2], D, inr)
     ez = _majority_sign(V[..., 0], D, inr)
     ey = jnp.cross(ez, ex)
-    n, nok = _oriented_normals(xyz, valid, normals, D, inr, normal_k)
+    n, nok = _oriented_normals(xyz, valid, normals, D, inr, near)
     m = inr & nok[j]
     L = jnp.einsum("nki,nji->nkj", D, jnp.stack([ex, ey, ez], 1))  # neighbour offsets in the frame
     cosang = jnp.einsum("nki,ni->nk", n[j], ez)

@@ -181,6 +181,14 @@ def estimate_normals(pts: Points, /, *, k: int = 16, viewpoint: tuple[float, flo
     valid = _valid_mask(pts)
     xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
     idx, _ = knn(xyz, xyz, k, ref_valid=valid)
+    return _replace(pts, normals=normals_from_neighbours(xyz, valid, idx, jnp.asarray(vp, xyz.dtype)))
+
+
+def normals_from_neighbours(xyz, valid, idx, viewpoint=None):
+    """The PCA normals of :func:`estimate_normals` from given neighbour lists ``idx`` ``(N, k)``
+    (``-1`` = missing; the point itself included), e.g. the first ``k`` columns of a larger kNN
+    answer a caller already has (one neighbour search instead of two). Oriented toward
+    ``viewpoint`` (default the origin); NaN where :func:`estimate_normals` gives NaN."""
     evals, evecs, _, cnt = pca_frames(xyz, valid, idx)
     n = evecs[..., 0]
     scale = jnp.maximum(evals[:, 2], 0.0)
@@ -191,10 +199,10 @@ def estimate_normals(pts: Points, /, *, k: int = 16, viewpoint: tuple[float, flo
     floor = jnp.maximum(max(1e-12, 32 * float(eps)) * scale,
                         (32 * eps * jnp.max(jnp.abs(xyz), axis=-1)) ** 2)
     ok = valid & (cnt >= 3) & (evals[:, 1] > floor) & (scale > 0)
-    s = jnp.sum(n * (jnp.asarray(vp, xyz.dtype) - xyz), axis=-1)
+    vp = jnp.zeros(3, xyz.dtype) if viewpoint is None else viewpoint
+    s = jnp.sum(n * (vp - xyz), axis=-1)
     n = jnp.where((s < 0)[:, None], -n, n)
-    n = jnp.where(ok[:, None], n + 0.0, jnp.nan)
-    return _replace(pts, normals=n)
+    return jnp.where(ok[:, None], n + 0.0, jnp.nan)
 
 
 # ---------------------------------------------------------------------------
