@@ -135,13 +135,13 @@ def _half_hidden_scene(seed):
 
 
 def test_occlusion_half_of_the_bunny_hidden():
-    """Half of the bunny's surface missing (seed 0): both methods still place it within 1.1 voxel
-    (measured, seeds 0-2: shape 0.84-0.86, Hough 0.33-0.39 voxel, pulled towards the visible half),
-    the null (centre of mass) misses by several voxels. Scores fall to about the visible share:
-    the Hough votes 0.38-0.43 stay above its default min_votes 0.33 (valid); the shape score
-    0.62-0.64 is below shape_locate3d's default min_score 0.75, which must stay above the clutter
-    alone (up to 0.61): there the shape method fails closed (valid=False) and needs a lower
-    min_score to report it."""
+    """Half of the bunny's surface missing (seed 0, cut across x): both methods still place it
+    within 1.1 voxel (measured, seeds 0-2, cut across x / z: shape 0.84-0.86 / 0.98-1.02, Hough
+    0.33-0.37 / 0.58-0.62, ncc3d 0.53-0.65 / 0.52-0.77 voxel, pulled towards the visible half),
+    the null (centre of mass) misses by several voxels. Scores fall: the Hough votes (0.27-0.38)
+    stay above its default min_votes 0.22 (valid); the shape score (0.62-0.67) is below
+    shape_locate3d's default min_score 0.75, which must stay above the clutter alone (up to
+    0.61): there the shape method fails closed (valid=False) and needs a lower min_score."""
     scene, tpl, truth = _half_hidden_scene(0)
     null = float(np.linalg.norm(_com(scene.data) - truth["centre"]))
     ms = ops.shape_locate3d(scene, tpl, min_score=0.5)
@@ -150,7 +150,7 @@ def test_occlusion_half_of_the_bunny_hidden():
     print(f"\nhalf hidden: shape {es:.3f} voxel (score {float(ms.score):.3f}), Hough {eh:.3f} voxel "
           f"(votes {float(mh.score[0]):.3f}), null {null:.2f}")
     assert bool(ms.valid) and bool(mh.valid[0]) and es < 1.1 and eh < 1.1 and max(es, eh) < null / 3
-    assert 0.3 < float(mh.score[0]) < 0.55 and 0.45 < float(ms.score) < 0.75
+    assert 0.25 < float(mh.score[0]) < 0.5 and 0.5 < float(ms.score) < 0.75
     assert not bool(ops.shape_locate3d(scene, tpl).valid)
 
 
