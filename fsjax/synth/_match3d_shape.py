@@ -6,7 +6,7 @@ same scenes and conventions as :func:`fsjax.synth.run_grid_cell`): shape-based m
 Both columns run on the scenes of the ``ncc3d`` cell (same seeds: the bunny moved by +-5 voxels
 among six clutter shells, 1 % noise on voxel scenes, a 24^3 template), each row brought onto the
 48^3 grid by the row's transform (:func:`fsjax.synth._match3d._on_grid`). The null is the scene's
-centre of mass. Scenes are kept for the last few calls (the two columns of a row share them).
+centre of mass. The last 12 scenes are kept (the two columns of a row, and the tests, share them).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ _SCENES: dict = {}
 def _scene(structure: str, seed: int, with_object: bool, dtype: Any, clean: bool):
     key = (structure, seed, with_object, str(jnp.dtype(jnp.result_type(float) if dtype is None else dtype)), clean)
     if key not in _SCENES:
-        if len(_SCENES) >= 4:
+        if len(_SCENES) >= 12:
             _SCENES.pop(next(iter(_SCENES)))
         rng = np.random.default_rng(100 + seed)  # the ncc3d cell's seeds
         scene, tpl, truth = match3d_scene(shift=rng.uniform(-5, 5, 3), seed=seed, with_object=with_object,

@@ -195,18 +195,18 @@ def shape_locate3d(scene: Volume, template: Volume, /, *, min_score: float = 0.7
       ball elsewhere; the template is a ball of radius 4 centred on voxel (7, 7, 7) of a 15^3 box, so
       its voxel [0, 0, 0] belongs on (5, 2, 3), i.e. ``t = (3, 2, 5)`` as (x, y, z). Found within
       0.005 voxel (the other ball's smoothed tail tilts the peak by 0.002), score 1; the scene
-      inverted (``1 - scene``) gives the same place and score:
+      inverted (``1 - scene``) gives the same place and score (in float32):
 
       >>> import jax.numpy as jnp, fsjax
       >>> k, i, j = jnp.mgrid[0:24, 0:22, 0:22]
       >>> ball = lambda c, r: jnp.clip(r + 0.5 - jnp.sqrt((k - c[0]) ** 2 + (i - c[1]) ** 2 + (j - c[2]) ** 2), 0, 1)
-      >>> scene = ball((12, 9, 10), 4.0) + 0.5 * ball((5, 16, 16), 2.5)
-      >>> tpl = ball((7, 7, 7), 4.0)[:15, :15, :15]
+      >>> scene = (ball((12, 9, 10), 4.0) + 0.5 * ball((5, 16, 16), 2.5)).astype(jnp.float32)
+      >>> tpl = ball((7, 7, 7), 4.0)[:15, :15, :15].astype(jnp.float32)
       >>> m = fsjax.ops.shape_locate3d(fsjax.Volume(scene), fsjax.Volume(tpl))
-      >>> [round(float(v), 2) + 0.0 for v in m.t], round(float(m.score), 6), bool(m.valid)
-      ([3.0, 2.0, 5.0], 1.0, True)
+      >>> [round(float(v), 2) + 0.0 for v in m.t], round(float(m.score), 4), bool(m.valid), m.t.dtype.name
+      ([3.0, 2.0, 5.0], 1.0, True, 'float32')
       >>> mi = fsjax.ops.shape_locate3d(fsjax.Volume(1.0 - scene), fsjax.Volume(tpl))
-      >>> [round(float(v), 2) + 0.0 for v in mi.t], round(float(mi.score), 6)
+      >>> [round(float(v), 2) + 0.0 for v in mi.t], round(float(mi.score), 4)
       ([3.0, 2.0, 5.0], 1.0)
     """
     op = "shape_locate3d"
