@@ -8,29 +8,31 @@ by every scene edge voxel, several instances by non-maximum suppression.
   is quantised on ``n_dirs`` Fibonacci directions of the upper hemisphere (the axis, not the
   sign: a contrast reversal flips every gradient and changes no bin). The R-table of bin ``b``
   lists the offsets from the model points whose direction lies within ``angle_tol_deg`` of
-  bin ``b``'s centre, and from those whose own direction falls in bin ``b`` (so a scene voxel
-  of exactly the model point's direction always finds it), so a scene direction a little off its
-  model point's still finds it. The reference point is the template's voxel ``[0, 0, 0]``
+  bin ``b``'s centre (so a scene direction a little off its model point's still finds it), and
+  from those whose own direction falls in bin ``b`` (so a scene voxel of exactly the model
+  point's direction always finds it). The reference point is the template's voxel ``[0, 0, 0]``
   (``t`` of :class:`fsjax.Match3D`), so a vote is ``o = s - u``.
 * **Voting.** Each scene voxel whose gradient magnitude exceeds ``edge_contrast`` of the
-  scene's largest is an edge voxel in its nearest bin; it votes once for every R-table entry
-  of that bin. All votes at once, with a static capacity: scene edge voxels sorted by bin, the
-  R-table entries' vote counts summed (prefix sums), vote ``p < max_votes`` mapped to its
-  entry by a running maximum of the entries' first votes and to its scene voxel by its rank within the entry, and one
-  scatter-add into the accumulator of placements (those that keep the template inside the
-  scene, as :func:`fsjax.ops.ncc3d`). More votes than ``max_votes`` is an overflow: every
-  instance is reported invalid (reason ``capacity_exceeded``), never a partial count.
+  scene's largest is an edge voxel in the bin of its direction (:func:`scene_bins`: a table
+  over polar angle and azimuth, the nearest bin for 97 % of directions); it votes once for
+  every R-table entry of that bin. All votes at once, with a static capacity: scene edge
+  voxels sorted by bin, the R-table entries' vote counts summed (prefix sums), vote
+  ``p < max_votes`` mapped to its entry by a running maximum of the entries' first votes and
+  to its scene voxel by its rank within the entry, and one scatter-add into the accumulator
+  of placements (those that keep the template inside the scene, as :func:`fsjax.ops.ncc3d`).
+  More votes than ``max_votes`` is an overflow: every instance is reported invalid (reason
+  ``capacity_exceeded``), never a partial count.
 * **Instances.** A placement's votes count the model points whose scene voxel agrees in
   position and direction, so ``score = votes / n_model`` is in ``[0, 1]`` (the fraction of the
-  model seen; an occluded half of the object halves it). Peaks: local maxima (3x3x3) of the
+  model seen; on the grid's scenes 0.76-0.95 for the whole bunny, 0.27-0.38 with half of its
+  surface missing). Peaks: local maxima (3x3x3) of the
   accumulator smoothed by ``[1, 2, 1] / 4`` per axis (which also breaks ties of integer
   counts), taken greedily, best first, each suppressing the peaks within ``min_distance``;
   a peak is an instance when its score reaches ``min_votes``. Sub-voxel by the 3x3x3 Newton
   peak of the smoothed accumulator (:func:`ncc3d`'s).
 
-The accumulator is, exactly, the sum over bins of the correlations of the scene's edge
-indicator of the bin with the template's (Ballard's voting is a correlation); the tests
-compare the two.
+The accumulator equals, at every placement, the number of (R-table entry, scene edge voxel)
+pairs of one bin with ``s - u = o``: the tests count those pairs by a loop and compare.
 """
 
 from __future__ import annotations

@@ -6,9 +6,9 @@ Here it is taken to 3-D for translations (no rotation search; rotate first, e.g.
 :func:`fsjax.ops.fourier_mellin_z3d`):
 
 * **Model.** The template is smoothed by a Gaussian of ``sigma`` (the spacing's unit, boundary
-  ``"nearest"``) and differentiated by central differences (physical units per axis); its model points are the
-  voxels whose gradient magnitude exceeds ``model_contrast`` times the template's largest,
-  each with its unit gradient direction ``d_m``.
+  ``"nearest"``) and differentiated by central differences (physical units per axis); its
+  model points are the voxels whose gradient magnitude exceeds ``model_contrast`` times the
+  template's largest, each with its unit gradient direction ``d_m``.
 * **Scene.** The same gradient; each voxel's direction is ``d_s = g / max(|g|, c)`` with
   ``c = min_contrast`` times the scene's largest gradient magnitude (Steger's contrast
   threshold, relative so that a gain of the scene changes nothing): strong edges count as unit
