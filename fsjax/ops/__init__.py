@@ -78,3 +78,5 @@ from .match3d._fmellin3d import *  # noqa: F403
 from .match3d._chamfer3d import *  # noqa: F403
 from .match3d._shdesc import *  # noqa: F403
 from .match3d._hough3d import *  # noqa: F403
+from .match3d._shape3d import *  # noqa: F403
+from .match3d._ghough3d import *  # noqa: F403

@@ -63,6 +63,8 @@ class RESULTS(eqx.Enumeration):
     refinement_failed = "sub-pixel refinement failed or merged neighbouring corners"
     no_model_fits = ("no candidate model explains the points: every fit's residuals are far above the "
                      "noise (or, with no noise given, above max_rel_rms of the points' spread)")
+    capacity_exceeded = ("a static capacity was exceeded (more items than the op's fixed buffer holds); the "
+                         "result would miss data, so it is refused: raise the capacity argument")
 
 
 def reason_code(name: str) -> int:
