@@ -27,12 +27,16 @@ import numpy as np  # noqa: E402
 
 from fsjax.synth import (  # noqa: E402
     MATCH3D_CELL_TOL,
+    MATCH3D_DEPTH_CELL_TOL,
+    MATCH3D_DEPTH_METHODS,
+    MATCH3D_DEPTH_NOT_APPLICABLE,
     MATCH3D_METHODS,
     MATCH3D_MORE_CELL_TOL,
     MATCH3D_MORE_METHODS,
     MATCH3D_MORE_NOT_YET,
     MATCH3D_NOT_YET,
     MATCH3D_STRUCTURES,
+    run_depth_cell,
     run_grid_cell,
     run_more_cell,
 )
@@ -41,10 +45,18 @@ from fsjax.synth import (  # noqa: E402
 COLUMNS = MATCH3D_METHODS + MATCH3D_MORE_METHODS
 NOT_YET = {**MATCH3D_NOT_YET, **MATCH3D_MORE_NOT_YET}
 CELL_TOL = {**MATCH3D_CELL_TOL, **MATCH3D_MORE_CELL_TOL}
+# the depth row (fsjax/synth/_match3d_depth.py): its built cells, and the columns a single view cannot support
+NOT_YET.update({("depth", m): why for m, why in MATCH3D_DEPTH_NOT_APPLICABLE.items()})
+for _m in MATCH3D_DEPTH_METHODS:
+    if _m not in MATCH3D_DEPTH_NOT_APPLICABLE:
+        NOT_YET.pop(("depth", _m), None)
+        CELL_TOL[("depth", _m)] = MATCH3D_DEPTH_CELL_TOL[_m]
 DEG = ("moments_pose3d", "lm_rotation_z3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d")
 
 
 def run_cell(s, m, **kw):
+    if s == "depth":
+        return run_depth_cell(m, **kw)
     return (run_more_cell if m in MATCH3D_MORE_METHODS else run_grid_cell)(s, m, **kw)
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -124,6 +136,15 @@ def main() -> None:
          "the template is the unturned bunny in a volume of the scene's size; `+lm_rotation_z3d` moves that pose "
          "onto the 24^3 template box and refines it (\"FM start\": the Fourier-Mellin error it starts from). "
          "`chamfer3d`: the scenes of the `ncc3d` column, occupancy at 0.3 of the template's peak. "
+         "Depth row (`fsjax/synth/_match3d_depth.py`, tests/ops/test_match3d_depth.py): the same kinds of scene as "
+         "meshes (the bunny's mesh, icospheres and boxes as clutter) seen by ONE camera looking along +z from 300 "
+         "voxels (0.3 voxel per pixel, `render_depth`'s rasteriser), so only the side facing the camera is there; "
+         "clutter whose silhouette would overlap the bunny's is left out (occlusion is another axis). The template "
+         "is a view of the bunny alone from the same direction and distance (a view-based template: the full "
+         "surface's hidden half has no counterpart in one view); both go onto the grid by depth -> points -> "
+         "`to_voxel` -> `gaussian3d(sigma=1)`. A turn about z is a turn about the optical axis, so the z-rotation "
+         "columns see the same half of the bunny; the scale column's scaled bunny keeps the template's point "
+         "density per area (not an exact scaled copy). "
          "Every cell: the method's time: first call (trace + compile + run) / second "
          "call (run only). `tests/ops/test_match3d.py::test_grid_cell` and "
          "`tests/ops/test_match3d_fm.py::test_fm_grid_cell` assert each cell against the tolerance shown.", "",
@@ -159,7 +180,7 @@ def main() -> None:
     L += ["", "## Not yet (issue 17)", "",
           "Methods not yet: shape-based 3-D (gradient directions), generalised Hough 3-D, "
           "curvature / shape-index matching, chamfer with rotation (`chamfer3d` is translation only); an NCC "
-          "pyramid. Structures: depth maps (partial views). Built outside this table (their "
+          "pyramid. Built outside this table (their "
           "own scenes and tests): parametric Hough for planes and spheres (`hough_planes3d`, `hough_spheres3d`, "
           "tests/ops/test_hough3d.py), the spherical-harmonic descriptor and Harris-3D "
           "(tests/ops/test_match3d_desc.py), spin images / SHOT / FPFH + RANSAC (+ ICP) and cross-structure "
