@@ -35,16 +35,19 @@ from fsjax.synth import (  # noqa: E402
     MATCH3D_MORE_METHODS,
     MATCH3D_MORE_NOT_YET,
     MATCH3D_NOT_YET,
+    MATCH3D_PYR_CELL_TOL,
+    MATCH3D_PYR_METHODS,
     MATCH3D_STRUCTURES,
     run_depth_cell,
     run_grid_cell,
     run_more_cell,
 )
 
-# the main table's columns: the base grid, then the Fourier-Mellin and chamfer columns (fsjax/synth/_match3d_more.py)
-COLUMNS = MATCH3D_METHODS + MATCH3D_MORE_METHODS
+# the main table's columns: the base grid, then the Fourier-Mellin and chamfer columns (fsjax/synth/_match3d_more.py),
+# then the NCC pyramid (fsjax/synth/_match3d_pyr.py)
+COLUMNS = MATCH3D_METHODS + MATCH3D_MORE_METHODS + MATCH3D_PYR_METHODS
 NOT_YET = {**MATCH3D_NOT_YET, **MATCH3D_MORE_NOT_YET}
-CELL_TOL = {**MATCH3D_CELL_TOL, **MATCH3D_MORE_CELL_TOL}
+CELL_TOL = {**MATCH3D_CELL_TOL, **MATCH3D_MORE_CELL_TOL, **MATCH3D_PYR_CELL_TOL}
 # the depth row (fsjax/synth/_match3d_depth.py): its built cells, and the columns a single view cannot support
 NOT_YET.update({("depth", m): why for m, why in MATCH3D_DEPTH_NOT_APPLICABLE.items()})
 for _m in MATCH3D_DEPTH_METHODS:
@@ -66,6 +69,9 @@ SELECTION = [
      "one FFT pair, no template box; whitened spectrum: noise-sensitive, thin validity margin"),
     ("a small template anywhere in a cluttered scene", "ncc3d", "exhaustive, gain/offset invariant; "
      "sub-voxel by a 3x3x3 Newton peak (0.05-0.2 voxel here)"),
+    ("a small template in a large scene (128^3)", "ncc3d_pyramid",
+     "the ncc3d placement at a fraction of the time (docs/benchmarks_ncc_pyramid.md); top_k coarse candidates carried "
+     "down; the template must keep >= 4 voxels at the coarsest level"),
     ("sub-voxel position after a coarse find", "ncc3d then lk_translation3d", "0.01-0.08 voxel; needs the "
      "same intensities in scene and template"),
     ("position and size", "lm_translation_scale3d (from ncc3d)", "scale to <1 %; LM on intensities"),
@@ -145,6 +151,8 @@ def main() -> None:
          "`to_voxel` -> `gaussian3d(sigma=1)`. A turn about z is a turn about the optical axis, so the z-rotation "
          "columns see the same half of the bunny; the scale column's scaled bunny keeps the template's point "
          "density per area (not an exact scaled copy). "
+         "`ncc3d_pyramid` (coarse-to-fine NCC, default levels: one reduction for the 24^3 template): the scenes of "
+         "the `ncc3d` column. "
          "Every cell: the method's time: first call (trace + compile + run) / second "
          "call (run only). `tests/ops/test_match3d.py::test_grid_cell` and "
          "`tests/ops/test_match3d_fm.py::test_fm_grid_cell` assert each cell against the tolerance shown.", "",
@@ -179,8 +187,7 @@ def main() -> None:
     L += [f"| {a} | `{b}` | {c} |" for a, b, c in SELECTION]
     L += ["", "## Not yet (issue 17)", "",
           "Methods not yet: shape-based 3-D (gradient directions), generalised Hough 3-D, "
-          "curvature / shape-index matching, chamfer with rotation (`chamfer3d` is translation only); an NCC "
-          "pyramid. Built outside this table (their "
+          "curvature / shape-index matching, chamfer with rotation (`chamfer3d` is translation only). Built outside this table (their "
           "own scenes and tests): parametric Hough for planes and spheres (`hough_planes3d`, `hough_spheres3d`, "
           "tests/ops/test_hough3d.py), the spherical-harmonic descriptor and Harris-3D "
           "(tests/ops/test_match3d_desc.py), spin images / SHOT / FPFH + RANSAC (+ ICP) and cross-structure "

@@ -76,5 +76,6 @@ from .match3d._refine3d import *  # noqa: F403
 from .match3d._pose3d import *  # noqa: F403
 from .match3d._fmellin3d import *  # noqa: F403
 from .match3d._chamfer3d import *  # noqa: F403
+from .match3d._pyramid3d import *  # noqa: F403
 from .match3d._shdesc import *  # noqa: F403
 from .match3d._hough3d import *  # noqa: F403

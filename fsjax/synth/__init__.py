@@ -37,6 +37,8 @@ from ._match3d_more import MATCH3D_MORE_CELL_TOL as MATCH3D_MORE_CELL_TOL
 from ._match3d_more import MATCH3D_MORE_METHODS as MATCH3D_MORE_METHODS
 from ._match3d_more import MATCH3D_MORE_NOT_YET as MATCH3D_MORE_NOT_YET
 from ._match3d_more import run_more_cell as run_more_cell
+from ._match3d_pyr import MATCH3D_PYR_CELL_TOL as MATCH3D_PYR_CELL_TOL
+from ._match3d_pyr import MATCH3D_PYR_METHODS as MATCH3D_PYR_METHODS
 from ._match3d_desc import MATCH3D_DESC_METHODS as MATCH3D_DESC_METHODS
 from ._match3d_desc import MATCH3D_DESC_MIN as MATCH3D_DESC_MIN
 from ._match3d_desc import MATCH3D_DESC_NOT_YET as MATCH3D_DESC_NOT_YET

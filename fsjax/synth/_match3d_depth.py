@@ -52,7 +52,8 @@ CAM_PX = 168  # the image, pixels square (50 voxels across at the grid centre)
 SIZE, TS = 48, 24
 
 MATCH3D_DEPTH_METHODS = ("phase_correlation3d", "ncc3d", "ncc3d+lk_translation3d", "lm_translation_scale3d", "lm_rotation_z3d",
-                 "moments_pose3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d", "chamfer3d")
+                 "moments_pose3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d", "chamfer3d",
+                         "ncc3d_pyramid")
 
 MATCH3D_DEPTH_NOT_APPLICABLE = {
     "moments_pose3d": "not applicable: a view sees one side; after an arbitrary rotation the scene shows another part "
@@ -62,10 +63,10 @@ MATCH3D_DEPTH_NOT_APPLICABLE = {
 
 # tolerance per column (voxels; degrees for the rotation columns): about 1.5-2x the largest error over seeds
 # 0-2 (measured: phase 0.078, ncc3d 0.135, +lk 0.024, lm scale 0.152 (scale error 0.032), lm rotation 0.89
-# deg, Fourier-Mellin 1.17 deg, +lm rotation 0.39 deg, chamfer 0.124)
+# deg, Fourier-Mellin 1.17 deg, +lm rotation 0.39 deg, chamfer 0.124; ncc3d_pyramid: ncc3d's placements)
 MATCH3D_DEPTH_CELL_TOL = {"phase_correlation3d": 0.15, "ncc3d": 0.25, "ncc3d+lk_translation3d": 0.05,
                   "lm_translation_scale3d": 0.3, "lm_rotation_z3d": 1.5, "fourier_mellin_z3d": 2.0,
-                  "fourier_mellin_z3d+lm_rotation_z3d": 0.7, "chamfer3d": 0.25}
+                  "fourier_mellin_z3d+lm_rotation_z3d": 0.7, "chamfer3d": 0.25, "ncc3d_pyramid": 0.25}
 # the scale column's scale error bound (a scaled object's view has the template's point density per area, not
 # a scaled copy of its grid: 0.013-0.032 measured)
 MATCH3D_DEPTH_SCALE_TOL = 0.05
