@@ -143,7 +143,7 @@ _TPL: dict = {}
 def match3d_depth_scene(name: str = "bunny", *, size: int = SIZE, template_size: int | None = TS, extent: float = 16.0,
                 shift: Any = (0.0, 0.0, 0.0), angles_deg: Any = (0.0, 0.0, 0.0), scale: float = 1.0,
                 clutter: int = 6, with_object: bool = True, n: int = 20000, seed: int = 0,
-                dtype: Any = None) -> tuple[Depth, Depth, dict]:
+                overlap: bool = False, dtype: Any = None) -> tuple[Depth, Depth, dict]:
     """The partial-view scene: ``(scene Depth, template Depth, truth)`` (module notes).
 
     The object appears in the scene as ``scale R (p - c_t) + c_s`` (``c_t`` the template box's
@@ -151,10 +151,13 @@ def match3d_depth_scene(name: str = "bunny", *, size: int = SIZE, template_size:
     has ``R``, ``t``, ``scale``, ``centre`` (``c_s``). ``template_size=None``: a template as large as
     the scene (the bunny alone at the grid centre, seen by the scene's camera).
     ``with_object=False``: the same scene without the object (the same clutter).
+    ``overlap=True`` keeps the shells whose silhouette may overlap the bunny's (in front of it or
+    behind it): occlusion, the condition the row leaves out (tests/ops/test_match3d_depth.py pins what
+    it does to ``ncc3d``).
     """
     dt = jnp.result_type(float) if dtype is None else dtype
     key = (name, size, template_size, extent, tuple(np.round(np.asarray(shift, float), 12)),
-           tuple(np.asarray(angles_deg, float)), scale, clutter, with_object, n, seed, str(jnp.dtype(dt)))
+           tuple(np.asarray(angles_deg, float)), scale, clutter, with_object, n, seed, str(jnp.dtype(dt)), overlap)
     if key in _MEMO:
         return _MEMO[key]
     if clutter > _SLOTS:
@@ -174,7 +177,7 @@ def match3d_depth_scene(name: str = "bunny", *, size: int = SIZE, template_size:
     for s, cp in enumerate(_clutter(rng, 8 * clutter, size, extent, c_s)):
         c = cp.mean(0)
         r = float(np.abs(cp - c).max())
-        if kept == clutter or np.linalg.norm((c - c_s)[:2]) < half + r * np.sqrt(2.0) + 1.0:
+        if kept == clutter or (not overlap and np.linalg.norm((c - c_s)[:2]) < half + r * np.sqrt(2.0) + 1.0):
             continue
         kept += 1
         if s % 2:
