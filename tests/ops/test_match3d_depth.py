@@ -69,6 +69,7 @@ def test_depth_cell(method):
     assert not r0["valid"] and ("not found" in r0["reason"] or "invalid input" in r0["reason"])
 
 
+@pytest.mark.slow  # float32 compiles of ncc3d and lk_translation3d (shared with test_match3d.py in a full run)
 def test_depth_cell_float32():
     r = run_depth_cell("ncc3d+lk_translation3d", dtype=jnp.float32)
     assert r["match"].t.dtype == jnp.float32 and r["valid"]
@@ -86,6 +87,7 @@ def test_moments_pose3d_fails_closed_on_one_view():
     assert not bool(m.valid) and "not found" in m.message
 
 
+@pytest.mark.slow  # two more scenes rendered
 def test_occluding_clutter_breaks_the_rows_margin():
     """Where the row breaks: with the shells that overlap the bunny's silhouette kept (``overlap=True``:
     in front they hide part of it, behind it they show through the template box), seed 0's bunny scores

@@ -86,6 +86,7 @@ def test_pyramid_grid_cell(structure):
     assert not r0["valid"] and "not found" in r0["reason"]
 
 
+@pytest.mark.slow  # a float32 compile of the pyramid and of ncc3d
 def test_pyramid_grid_cell_float32():
     from fsjax.synth import MATCH3D_PYR_CELL_TOL, run_grid_cell
 
