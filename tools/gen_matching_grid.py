@@ -156,8 +156,9 @@ def main() -> None:
          "`ncc3d_pyramid` (coarse-to-fine NCC, default levels: one reduction for the 24^3 template): the scenes of "
          "the `ncc3d` column. "
          "Every cell: the method's time: first call (trace + compile + run) / second "
-         "call (run only). `tests/ops/test_match3d.py::test_grid_cell` and "
-         "`tests/ops/test_match3d_fm.py::test_fm_grid_cell` assert each cell against the tolerance shown.", "",
+         "call (run only). `tests/ops/test_match3d.py::test_grid_cell`, "
+         "`tests/ops/test_match3d_fm.py::test_fm_grid_cell`, `tests/ops/test_match3d_depth.py::test_depth_cell` and "
+         "`tests/ops/test_match3d_pyramid.py::test_pyramid_grid_cell` assert each cell against the tolerance shown.", "",
          f"Machine: {platform.machine()}, {os.cpu_count()} cores, load {load0:.1f} -> {load1:.1f} during the run; "
          f"jax {jax.__version__}; float64; {args.seeds} scene(s) per cell "
          f"({time.strftime('%Y-%m-%d', time.gmtime())}).", ""]
@@ -189,7 +190,8 @@ def main() -> None:
     L += [f"| {a} | `{b}` | {c} |" for a, b, c in SELECTION]
     L += ["", "## Not yet (issue 17)", "",
           "Methods not yet: shape-based 3-D (gradient directions), generalised Hough 3-D, "
-          "curvature / shape-index matching, chamfer with rotation (`chamfer3d` is translation only). Built outside this table (their "
+          "curvature / shape-index matching, chamfer with rotation (`chamfer3d` is translation only). Built outside "
+          "this table (their "
           "own scenes and tests): parametric Hough for planes and spheres (`hough_planes3d`, `hough_spheres3d`, "
           "tests/ops/test_hough3d.py), the spherical-harmonic descriptor and Harris-3D "
           "(tests/ops/test_match3d_desc.py), spin images / SHOT / FPFH + RANSAC (+ ICP) and cross-structure "
