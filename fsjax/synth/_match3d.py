@@ -211,7 +211,7 @@ MATCH3D_METHODS = ("phase_correlation3d", "ncc3d", "ncc3d+lk_translation3d", "lm
 
 # cells not built yet (structure, method) -> why; every other cell of MATCH3D_STRUCTURES x MATCH3D_METHODS runs
 MATCH3D_NOT_YET = {
-    **{("depth", m): "not yet: depth -> points exists (depth_to_points), the partial-view scene is not built"
+    **{("depth", m): "the depth row: fsjax/synth/_match3d_depth.py (run_depth_cell, tests/ops/test_match3d_depth.py)"
        for m in MATCH3D_METHODS},
     **{(s, m): "not yet: the scene generator moves the same samples only for voxels (a scaled scene "
        "needs its density rescaled)" for s in ("points", "mesh", "gaussians") for m in ("lm_translation_scale3d",)},

@@ -28,7 +28,7 @@ __all__ = ["MATCH3D_MORE_METHODS", "MATCH3D_MORE_NOT_YET", "MATCH3D_MORE_CELL_TO
 MATCH3D_MORE_METHODS = ("fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d", "chamfer3d")
 
 MATCH3D_MORE_NOT_YET = {
-    **{("depth", m): "not yet: depth -> points exists (depth_to_points), the partial-view scene is not built"
+    **{("depth", m): "the depth row: fsjax/synth/_match3d_depth.py (run_depth_cell, tests/ops/test_match3d_depth.py)"
        for m in MATCH3D_MORE_METHODS},
     ("mesh", "fourier_mellin_z3d+lm_rotation_z3d"): "not yet: lm_rotation_z3d does not converge within 50 steps "
     "on the mesh row's volumes (final NCC 0.94-0.98, seeds 0-2)",
