@@ -81,3 +81,35 @@ def test_global_registration_60deg_70pct_overlap():
     assert r["coarse_error_deg"] <= COARSE_MAX
     assert r["refined_error_deg"] <= 0.05
 
+
+
+def test_ransac_refuses_a_pose_that_chance_explains():
+    """On surface points a wrong pose collects a few inliers by chance; the best of thousands of
+    hypotheses then passes an absolute gate of 6. The chance bound (matches re-paired at random give
+    the rate of accidental inliers) refuses it and keeps poses that real matches support."""
+    from scipy.spatial import cKDTree
+
+    from fsjax.data import surface_points
+
+    x = np.asarray(surface_points("bunny", 600, 0))
+    y = np.asarray(surface_points("bunny", 600, 1))  # an independent sample of the same surface
+    r = np.asarray(rotation_from_axis_angle(jnp.array([0.3, 1.0, -0.4]), 60.0))
+    yt = y @ r.T + 0.05
+    rng = np.random.default_rng(0)
+    nn = cKDTree(y).query(x)[1]
+    out = {}
+    for frac in (0.0, 0.1):
+        good = rng.random(600) < frac
+        partner = np.where(good, nn, rng.integers(0, 600, 600))
+        out[frac] = ransac_registration(jax.random.key(0), jnp.asarray(x), jnp.asarray(yt[partner]),
+                                        jnp.ones(600, bool), distance=0.01, n_hypotheses=8192)
+    wrong, right = out[0.0], out[0.1]
+    err = float(rotation_error_deg(right.R, jnp.asarray(r)))
+    print(f"600 bunny matches, none right: best pose {int(wrong.n_inliers)} inliers, chance {float(wrong.chance):.2f} "
+          f"-> reason {int(wrong.reason)}; 10 % right: {int(right.n_inliers)} inliers, chance "
+          f"{float(right.chance):.1e}, rotation error {err:.2f} deg (null: 60 deg)")
+    # the null gate: the wrong pose has as many inliers as the absolute minimum asks
+    assert int(wrong.n_inliers) >= 6
+    assert int(wrong.reason) == 6 and not bool(wrong.converged) and float(wrong.chance) > 0.01
+    assert bool(jnp.all(jnp.isnan(wrong.R)))
+    assert bool(right.converged) and float(right.chance) < 1e-10 and err < 2.0
