@@ -271,6 +271,28 @@ def _on_grid(x: Any, size: int, sigma: float) -> Volume:
 _GRID_MEMO: dict = {}
 
 
+
+def timed_call(call, timing: bool):
+    """``(result, first, second)``: ``call()``'s result, the wall time of its first call (trace +
+    compile + run) and of a second call (run only; NaN unless ``timing``), each until ready."""
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(call())
+    t1 = time.perf_counter()
+    if timing:
+        jax.block_until_ready(call())
+    t2 = time.perf_counter()
+    return out, t1 - t0, (t2 - t1) if timing else float("nan")
+
+
+def com_null(data, centre) -> float:
+    """The centre-of-mass null of a cell: distance from the scene's (clipped at 0) centre of mass,
+    ``(x, y, z)`` = (column, row, slice), to the true centre."""
+    w = np.clip(np.asarray(data), 0, None)
+    k, i, j = np.mgrid[0:w.shape[0], 0:w.shape[1], 0:w.shape[2]]
+    com = np.array([(w * a).sum() for a in (j, i, k)]) / w.sum()
+    return float(np.linalg.norm(com - np.asarray(centre)))
+
+
 def run_grid_cell(structure: str, method: str, *, seed: int = 0, with_object: bool = True,
                   dtype: Any = None, timing: bool = False, clean: bool = False) -> dict:
     """Run one cell of the 3-D matching grid on its scene; return the measured figures.
@@ -316,15 +338,10 @@ def run_grid_cell(structure: str, method: str, *, seed: int = 0, with_object: bo
     else:
         def call():
             return getattr(ops, method)(scene, tpl)
-    t0 = time.perf_counter()
-    m = jax.block_until_ready(call())
-    t1 = time.perf_counter()
-    if timing:
-        jax.block_until_ready(call())
-    t2 = time.perf_counter()
+    m, t_first, t_run = timed_call(call, timing)
     c_t = np.full(3, ((ts or size) - 1) / 2.0)
     out = {"valid": bool(m.valid), "score": float(m.score), "reason": str(m.message), "match": m,
-           "time_first_s": t1 - t0, "time_s": (t2 - t1) if timing else float("nan")}
+           "time_first_s": t_first, "time_s": t_run}
     if pose:
         out["error"] = _rot_err_deg(np.asarray(m.R), truth["R"]) if out["valid"] else float("nan")
         out["null"] = _rot_err_deg(np.eye(3), truth["R"])
@@ -332,10 +349,7 @@ def run_grid_cell(structure: str, method: str, *, seed: int = 0, with_object: bo
         return out
     centre = np.asarray(m.apply(jnp.asarray(c_t, m.t.dtype)))
     out["error"] = float(np.linalg.norm(centre - truth["centre"]))
-    w = np.clip(np.asarray(scene.data), 0, None)
-    k, i, j = np.mgrid[0:size, 0:size, 0:size]
-    com = np.array([(w * a).sum() for a in (j, i, k)]) / w.sum()
-    out["null"] = float(np.linalg.norm(com - truth["centre"]))
+    out["null"] = com_null(scene.data, truth["centre"])
     if method == "lm_translation_scale3d":
         out["scale_error"] = abs(float(m.scale) - truth["scale"])
     return out

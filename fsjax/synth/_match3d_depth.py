@@ -38,7 +38,6 @@ reason; :func:`run_depth_cell` runs the others with the conventions of
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import jax
@@ -46,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..types import Camera, Depth, Match3D, Mesh
-from ._match3d import _clutter, _rot_err_deg, rotation_zyx
+from ._match3d import _clutter, _rot_err_deg, rotation_zyx, timed_call
 
 __all__ = ["MATCH3D_DEPTH_CELL_TOL", "MATCH3D_DEPTH_SCALE_TOL", "MATCH3D_DEPTH_NOT_APPLICABLE", "MATCH3D_DEPTH_METHODS", "match3d_depth_scene", "depth_to_grid", "run_depth_cell"]
 
@@ -272,16 +271,11 @@ def run_depth_cell(method: str, *, seed: int = 0, with_object: bool = True, dtyp
     else:
         def call():
             return getattr(ops, method)(scene, tpl)
-    t0 = time.perf_counter()
-    m = jax.block_until_ready(call())
-    t1 = time.perf_counter()
-    if timing:
-        jax.block_until_ready(call())
-    t2 = time.perf_counter()
+    m, t_first, t_run = timed_call(call, timing)
     m, m0 = m if isinstance(m, tuple) else (m, None)
     c_t = c_box if (box is not None or not full) else c_full
     out = {"valid": bool(m.valid), "score": float(m.score), "reason": str(m.message), "match": m,
-           "time_first_s": t1 - t0, "time_s": (t2 - t1) if timing else float("nan")}
+           "time_first_s": t_first, "time_s": t_run}
     centre = np.asarray(m.apply(jnp.asarray(c_t, m.t.dtype)))
     if method in ("lm_rotation_z3d",) or fm:
         out["error"] = _rot_err_deg(np.asarray(m.R), truth["R"]) if out["valid"] else float("nan")

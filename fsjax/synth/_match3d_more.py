@@ -13,15 +13,13 @@ refinement started from it, and chamfer matching.
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..types import Match3D
-from ._match3d import _on_grid, _rot_err_deg, match3d_scene
+from ._match3d import _on_grid, _rot_err_deg, com_null, match3d_scene, timed_call
 
 __all__ = ["MATCH3D_MORE_METHODS", "MATCH3D_MORE_NOT_YET", "MATCH3D_MORE_CELL_TOL", "run_more_cell"]
 
@@ -83,15 +81,10 @@ def run_more_cell(structure: str, method: str, *, seed: int = 0, with_object: bo
                        m.score, m.valid, m.reason)
         return m, ops.lm_rotation_z3d(scene, box, init=init)
 
-    t0 = time.perf_counter()
-    m0, m = jax.block_until_ready(call())
-    t1 = time.perf_counter()
-    if timing:
-        jax.block_until_ready(call())
-    t2 = time.perf_counter()
+    (m0, m), t_first, t_run = timed_call(call, timing)
     c_t = c_box if refine else c_full
     out = {"valid": bool(m.valid), "score": float(m.score), "reason": str(m.message), "match": m,
-           "time_first_s": t1 - t0, "time_s": (t2 - t1) if timing else float("nan")}
+           "time_first_s": t_first, "time_s": t_run}
     out["error"] = _rot_err_deg(np.asarray(m.R), truth["R"]) if out["valid"] else float("nan")
     out["null"] = _rot_err_deg(np.eye(3), truth["R"])
     out["centre_error"] = float(np.linalg.norm(np.asarray(m.apply(jnp.asarray(c_t, m.t.dtype))) - truth["centre"]))
@@ -117,18 +110,10 @@ def _chamfer_cell(structure, *, seed, with_object, dtype, timing, clean):
     def call():
         return ops.chamfer3d(scene, tpl, level=level)
 
-    t0 = time.perf_counter()
-    m = jax.block_until_ready(call())
-    t1 = time.perf_counter()
-    if timing:
-        jax.block_until_ready(call())
-    t2 = time.perf_counter()
+    m, t_first, t_run = timed_call(call, timing)
     out = {"valid": bool(m.valid), "score": float(m.score), "reason": str(m.message), "match": m,
-           "time_first_s": t1 - t0, "time_s": (t2 - t1) if timing else float("nan")}
+           "time_first_s": t_first, "time_s": t_run}
     c_t = np.full(3, (ts - 1) / 2.0)
     out["error"] = float(np.linalg.norm(np.asarray(m.apply(jnp.asarray(c_t, m.t.dtype))) - truth["centre"]))
-    w = np.clip(np.asarray(scene.data), 0, None)
-    k, i, j = np.mgrid[0:size, 0:size, 0:size]
-    com = np.array([(w * a).sum() for a in (j, i, k)]) / w.sum()
-    out["null"] = float(np.linalg.norm(com - truth["centre"]))
+    out["null"] = com_null(scene.data, truth["centre"])
     return out

@@ -11,14 +11,13 @@ centre of mass. The last 12 scenes are kept (the two columns of a row, and the t
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._match3d import _on_grid, match3d_scene
+from ._match3d import _on_grid, com_null, match3d_scene, timed_call
 
 __all__ = ["MATCH3D_SHAPE_METHODS", "MATCH3D_SHAPE_NOT_YET", "MATCH3D_SHAPE_CELL_TOL", "run_shape_cell"]
 
@@ -65,25 +64,17 @@ def run_shape_cell(structure: str, method: str, *, seed: int = 0, with_object: b
     if (structure, method) in MATCH3D_SHAPE_NOT_YET or method not in MATCH3D_SHAPE_METHODS:
         raise ValueError(f"run_shape_cell: cell ({structure}, {method}) is not a built cell of this module")
     scene, tpl, truth = _scene(structure, seed, with_object, dtype, clean)
-    size, ts = 48, 24
+    ts = 24
     fn = getattr(ops, method)
 
     def call():
         return fn(scene, tpl)
 
-    t0 = time.perf_counter()
-    m = jax.block_until_ready(call())
-    t1 = time.perf_counter()
-    if timing:
-        jax.block_until_ready(call())
-    t2 = time.perf_counter()
+    m, t_first, t_run = timed_call(call, timing)
     best = jax.tree_util.tree_map(lambda a: a[0], m) if m.batch_shape else m
     out = {"valid": bool(best.valid), "score": float(best.score), "reason": str(best.message), "match": m,
-           "time_first_s": t1 - t0, "time_s": (t2 - t1) if timing else float("nan")}
+           "time_first_s": t_first, "time_s": t_run}
     c_t = np.full(3, (ts - 1) / 2.0)
     out["error"] = float(np.linalg.norm(np.asarray(best.apply(jnp.asarray(c_t, best.t.dtype))) - truth["centre"]))
-    w = np.clip(np.asarray(scene.data), 0, None)
-    k, i, j = np.mgrid[0:size, 0:size, 0:size]
-    com = np.array([(w * a).sum() for a in (j, i, k)]) / w.sum()
-    out["null"] = float(np.linalg.norm(com - truth["centre"]))
+    out["null"] = com_null(scene.data, truth["centre"])
     return out
