@@ -315,7 +315,7 @@ _IMPL = {
 
 
 @functools.partial(jax.jit, static_argnames=("model", "n_hyp", "max_steps", "rounds"))
-def _core(key, xyz, valid, normals, thr, min_frac, max_shell, *, model, n_hyp, max_steps, rounds):
+def _core(key, xyz, valid, normals, thr, min_frac, max_shell, plane_share, *, model, n_hyp, max_steps, rounds):
     hyp, dist, refit = _IMPL[model]
     names, s = MODELS[model]
     dt = xyz.dtype
@@ -363,12 +363,18 @@ def _core(key, xyz, valid, normals, thr, min_frac, max_shell, *, model, n_hyp, m
     rms = jnp.sqrt(jnp.sum(jnp.where(inl, r * r, 0.0)) / jnp.maximum(n_in, 1).astype(dt))
     low = frac < min_frac
     if model in ("sphere", "cylinder"):
-        # a curved model the data does not support: when the inliers are all within the
-        # threshold of their own total-least-squares plane, a sphere or cylinder of any large
-        # radius explains them (a plane gave radius 143 for a 2-unit patch), so refuse it
+        # a curved model the data does not support: when the inliers lie within the threshold
+        # of one plane, a sphere or cylinder of any large radius explains them (a plane gave
+        # radius 143 for a 2-unit patch), so refuse it. "One plane" is robust: the inliers'
+        # total-least-squares plane refitted on its own in-threshold points must hold at least
+        # plane_share of them (a plane patch and 5 points of a second plane, 216 + 5 inliers,
+        # gave a converged "sphere" of radius 8.3 under the all-inliers rule). A true sphere's
+        # inliers put thr / r of themselves near any plane (3 % at r = 0.35, thr = 0.012)
         c0, _, ev0 = _weighted_pca(x, inl.astype(dt))
-        dev = jnp.abs((x - c0) @ ev0[:, 0])
-        flat = (n_in >= 3) & (jnp.max(jnp.where(inl, dev, 0.0)) <= thr)
+        near = inl & (jnp.abs((x - c0) @ ev0[:, 0]) <= thr)
+        c1, _, ev1 = _weighted_pca(x, near.astype(dt))
+        on_plane = jnp.sum(inl & (jnp.abs((x - c1) @ ev1[:, 0]) <= thr))
+        flat = (n_in >= 3) & (on_plane >= plane_share * n_in.astype(dt))
     else:
         flat = jnp.asarray(False)
     # a surface (or line) thins out beyond the threshold; a slice through a volume of points
@@ -401,7 +407,7 @@ def _pca_normals(xyz, v):
 
 def ransac(key, points, model: str = "plane", *, threshold: float = 0.01, n_hypotheses: int = 256,
            min_inlier_fraction: float = 0.15, valid=None, normals=None, max_steps: int = 100,
-           rounds: int = 3, max_shell_ratio: float = 0.5) -> RansacResult:
+           rounds: int = 3, max_shell_ratio: float = 0.5, max_plane_share: float = 0.8) -> RansacResult:
     """RANSAC fit of a plane, line, sphere or cylinder to a 3-D point set.
 
     Args:
@@ -429,6 +435,12 @@ def ransac(key, points, model: str = "plane", *, threshold: float = 0.01, n_hypo
         are a slice through a volume of points, not a surface or line. Gaussian noise of
         sigma = threshold gives 0.40, sigma = threshold / 2 0.05; a uniform volume ~1
         (module notes). ``inf`` disables the test.
+      max_plane_share: a sphere or cylinder is refused (``unsupported_model``) when at least
+        this fraction of its inliers lie within ``threshold`` of one plane (the inliers' plane,
+        refitted on its own in-threshold points): the data do not resolve the curvature, and a
+        large radius explains a flat patch (a floor patch and 5 points of a wall gave a "sphere"
+        of radius 8.3). A true sphere puts about ``threshold / r`` of its inliers near any plane.
+        A value above 1 disables the test; plane and line models ignore it.
 
     Returns:
       :class:`RansacResult` (``kind`` = model, ``names`` its parameters).
@@ -454,8 +466,11 @@ def ransac(key, points, model: str = "plane", *, threshold: float = 0.01, n_hypo
     if model == "cylinder" and nrm is None:
         nrm = _pca_normals(xyz, v)
     dt = xyz.dtype
+    if is_concrete(max_plane_share) and not float(max_plane_share) > 0:
+        raise ValueError(f"{fn}: argument 'max_plane_share' must be a positive number (above 1: no test); "
+                         f"got {max_plane_share!r}")
     return _core(key, xyz, v, nrm, jnp.asarray(threshold, dt), jnp.asarray(min_inlier_fraction, dt),
-                 jnp.asarray(max_shell_ratio, dt), model=model, n_hyp=int(n_hypotheses), max_steps=int(max_steps), rounds=int(rounds))
+                 jnp.asarray(max_shell_ratio, dt), jnp.asarray(max_plane_share, dt), model=model, n_hyp=int(n_hypotheses), max_steps=int(max_steps), rounds=int(rounds))
 
 
 def ransac_plane(key, points, **kw: Any) -> RansacResult:

@@ -145,9 +145,10 @@ def test_model_through_a_volume_of_points_refused(dtype):
         r = ransac(jax.random.PRNGKey(0), jnp.asarray(blobs), model, threshold=0.01)
         assert not bool(r.converged) and int(r.reason) == reason_code("unsupported_model"), (model, int(r.reason))
         assert bool(np.all(np.isnan(np.asarray(r.params))))
-        # the null: without the test the slab is accepted (what the old code did)
+        # the null: without the tests the slab is accepted (what the old code did; the sphere's slab,
+        # r 1.66, is also nearly one plane, which the flat-patch test refuses on its own)
         assert bool(ransac(jax.random.PRNGKey(0), jnp.asarray(blobs), model, threshold=0.01,
-                           max_shell_ratio=float("inf")).converged), model
+                           max_shell_ratio=float("inf"), max_plane_share=2.0).converged), model
     g = rng.uniform(-1, 1, (400, 2))
     noisy = np.c_[g, 0.3 + 0.01 * rng.normal(size=400)].astype(dtype)  # noise sigma = threshold
     r = ransac(jax.random.PRNGKey(1), jnp.asarray(noisy), "plane", threshold=0.01)
@@ -155,6 +156,8 @@ def test_model_through_a_volume_of_points_refused(dtype):
     x, n = plane_scene(7, 0.3)
     r = ransac(jax.random.PRNGKey(2), jnp.asarray(x.astype(dtype)), "plane", threshold=0.01)
     assert bool(r.converged) and _angle(np.asarray(r.params[:3])[None], n[None])[0] < 1.0
+    with pytest.raises(ValueError, match="ransac.*max_plane_share"):
+        ransac(jax.random.PRNGKey(0), jnp.asarray(blobs), "sphere", threshold=0.01, max_plane_share=0.0)
     with pytest.raises(ValueError, match="ransac.*max_shell_ratio"):
         ransac(jax.random.PRNGKey(0), jnp.asarray(blobs), "plane", threshold=0.01, max_shell_ratio=0.0)
 
