@@ -341,6 +341,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--minutes", type=float, help="stop drawing new chains after this many minutes")
     p.add_argument("--no-grad", action="store_true", help="skip the grad way")
+    p.add_argument("--whole-chain", type=float, default=None,
+                   help="fraction of chains also compiled whole, jit(vmap(chain)) and grad (default 0.05; "
+                        "every chain runs through per-stage compiled programs)")
     p.add_argument("--strict", action="store_true", help="exit 1 on SUSPECT/TYPEMISS/MISMATCH/SILENT_OVERFLOW/GRADNAN")
     p.add_argument("--replay", help="JSON-lines file of chains or failure records to run again")
     p.add_argument("--out", help="output directory (report.md, failures.jsonl, minimised.jsonl)")

@@ -113,6 +113,40 @@ def test_clean_chains_pass_and_odd_size_alone_is_fine(planted):
     assert runner.run(_chain(["planted_overflow"])).status == "ok"
 
 
+def test_stage_programs_repeat_across_chains(planted):
+    """The per-stage compiled programs are reused when an op meets the same shapes again (knob
+    values are traced), and a chain made only of seen stages compiles nothing new in the traced
+    ways; the null, compiling the chain whole, compiles again for every new chain."""
+    _, specs = planted
+    runner = fz.Runner(specs)
+    c1 = _chain(["gaussian", "mean"], size=(9, 8))
+    c2 = fz.Chain.from_json({**c1.to_json(), "stages": [{"op": "gaussian", "a": 0.7, "b": None, "params": {},
+                                                          "slot": 0}, {"op": "mean", "a": None, "b": None,
+                                                                       "params": {}, "slot": 0}]})
+    c1 = fz.Chain.from_json({**c1.to_json(), "stages": [{**s.to_json(), "a": 0.2 if s.op == "gaussian" else None}
+                                                         for s in c1.stages]})
+    o1 = runner.run(c1)
+    assert o1.status == "ok", o1
+    assert runner.stats["stage_hits"] == 0 and runner.stats["stage_calls"] == 2
+    o2 = runner.run(c2)  # another knob value: the same two stage programs and grad programs
+    assert o2.status == "ok", o2
+    assert runner.stats["stage_hits"] == 2 and runner.stats["grad_hits"] == runner.stats["grad_calls"] // 2
+    staged_compiles = o2.times["compiles"]
+    o3 = runner.run(c2, whole=True)  # the null: the chain compiled whole (jit(vmap), jit, grad)
+    assert o3.status == "ok", o3
+    assert runner.stats["whole"] == 1
+    print(f"compiles: first chain {o1.times['compiles']}, same stages again {staged_compiles}, "
+          f"compiled whole {o3.times['compiles']}")
+    assert o3.times["compiles"] >= staged_compiles + 2  # the whole chain: at least jit(vmap) and grad
+
+
+def test_whole_chain_way_catches_the_planted_bugs_too(planted):
+    runner, _ = planted
+    for ops, cls in ((["planted_jit_differs"], "MISMATCH"), (["planted_nan_grad"], "GRADNAN")):
+        o = runner.run(_chain(ops, size=(6, 6)), whole=True)
+        assert (o.status, o.cls, o.op) == ("failed", cls, ops[0]), o
+
+
 def test_all_nan_refused_at_the_door(planted):
     runner, _ = planted
     o = runner.run(_chain(["gaussian", "otsu"], kind="nan"))
