@@ -42,7 +42,8 @@ caches hit. Every failure lands in exactly one class with a signature that group
 ``TYPEMISS``  the pipeline checker refused a type-correct chain, or an op refused a sort
               the checker accepted
 ``NONFINITE`` NaN/inf from finite input not explained by a flag (``converged``/``found``
-              False, ``truncated`` True, a ``valid`` mask, a NaN ``Feature`` = "could not measure")
+              False, ``truncated`` True, a ``valid`` mask or a record's scalar ``valid`` False,
+              a NaN ``Feature`` = "could not measure")
 ``MISMATCH``  eager, ``jit`` and ``vmap`` disagree beyond the stated tolerance
 ``GRADNAN``   finite forward, NaN gradient
 ``RECOMPILE`` a second call with the same shapes compiles again (eager op-by-op, or the

@@ -397,6 +397,9 @@ class Runner:
             v = getattr(out, f, None)
             if v is not None and not bool(np.all(np.asarray(v))):
                 return
+        v = getattr(out, "valid", None)  # a record's own validity flag (Match3D: NaN pose when not valid)
+        if v is not None and np.ndim(v) == 0 and np.asarray(v).dtype == np.bool_ and not bool(v):
+            return
         t = getattr(out, "truncated", None)
         if t is not None and bool(np.any(np.asarray(t))):
             return

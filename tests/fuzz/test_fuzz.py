@@ -19,7 +19,7 @@ from fsjax import Contour, Image, Region
 from fsjax.registry import register
 
 PLANTED = ("planted_wrong_sort", "planted_odd_index", "planted_recompile", "planted_overflow",
-           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs")
+           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs", "planted_match_nan")
 
 
 def _plant():
@@ -59,6 +59,13 @@ def _plant():
     def planted_traced_nan(img: Image) -> Image:
         """Planted bug: NaN under a trace where the eager call is finite (an Image has no NaN flag)."""
         return Image(img.data if fsjax.types.is_concrete(img.data) else img.data * jnp.nan)
+
+    @register(family="planted", takes=Image, gives=fsjax.Match3D)
+    def planted_match_nan(img: Image, *, flag: bool = False) -> fsjax.Match3D:
+        """A record with NaN pose: explained when its ``valid`` is False (``flag``), a bug when True."""
+        nan = jnp.full((), jnp.nan, img.data.dtype)
+        return fsjax.Match3D(jnp.full((3, 3), nan), jnp.full((3,), nan), nan,
+                             jnp.asarray(flag), jnp.asarray(0 if flag else 1, jnp.int32))
 
     @register(family="planted", takes=Image, gives=Image)
     def planted_jit_differs(img: Image) -> Image:
@@ -145,6 +152,16 @@ def test_whole_chain_way_catches_the_planted_bugs_too(planted):
     for ops, cls in ((["planted_jit_differs"], "MISMATCH"), (["planted_nan_grad"], "GRADNAN")):
         o = runner.run(_chain(ops, size=(6, 6)), whole=True)
         assert (o.status, o.cls, o.op) == ("failed", cls, ops[0]), o
+
+
+def test_record_valid_flag_explains_nan(planted):
+    """Match3D's scalar ``valid`` False explains its NaN pose (the full run's moments_pose3d and
+    lm_rotation_z3d were reported NONFINITE for it); NaN with ``valid`` True is still caught."""
+    runner, _ = planted
+    o = runner.run(_chain(["planted_match_nan"], size=(4, 4)))
+    assert o.status == "ok", o
+    o = runner.run(_chain(["planted_match_nan"], size=(4, 4), params={"planted_match_nan": {"flag": True}}))
+    assert (o.status, o.cls, o.op) == ("failed", "NONFINITE", "planted_match_nan"), o
 
 
 def test_all_nan_refused_at_the_door(planted):
