@@ -15,7 +15,9 @@
     ``DIR/report.md`` and figures; a running section prints a progress line every 15 s.
 ``fsjax fuzz --chains N --length L --seed S --out DIR`` / ``fsjax fuzz --replay FILE``
     the chain fuzzer (:mod:`fsjax.fuzz`): random typed chains run eager, under jit, vmap
-    and grad; failures classified and minimised into ``DIR/report.md`` and JSON lines.
+    and grad (per-stage compiled programs reused across chains; ``--whole-chain F``: the
+    fraction of chains also compiled whole, default 0.05); failures classified and
+    minimised into ``DIR/report.md`` and JSON lines.
 
 ``fsjax sfm IMAGE_DIR --out DIR [--intrinsics fx,fy,cx,cy] [--ground-truth cameras.json]``
     structure from motion (:mod:`fsjax.sfm`): ``DIR/report.md``, ``DIR/sparse/*.txt`` (COLMAP
