@@ -46,8 +46,8 @@ caches hit. Every failure lands in exactly one class with a signature that group
               a NaN ``Feature`` = "could not measure")
 ``MISMATCH``  eager, ``jit`` and ``vmap`` disagree beyond the stated tolerance
 ``GRADNAN``   finite forward, NaN gradient
-``RECOMPILE`` a second call with the same shapes compiles again (eager op-by-op, or the
-              compiled chain)
+``RECOMPILE`` a second call with the same shapes compiles again (eager op-by-op, a stage
+              program, or the chain compiled whole)
 ``GROWTH``    output more than 64 x the input's bytes (+1 MiB)
 ``SILENT_OVERFLOW`` a truncated input whose flag is not passed on, or, for an op with a
               ``capacity`` (drawn small now and then), fewer items kept than the same call at
