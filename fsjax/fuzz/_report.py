@@ -176,6 +176,7 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
             break
         chain = generate_chain(graph, rng, max_length, uses)
         whole = random.Random(f"{seed}:{k}").random() < whole_chain_fraction
+        runner.release_if_needed()
         o = runner.run(chain, whole=whole)
         run.results.append((chain, o))
         if journal is not None:
@@ -382,6 +383,7 @@ def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "")
         L.append(f"| grad programs (jit(vjp(stage))) | {st['grad_calls']} calls, {st['grad_hits']} reused "
                  f"({100 * st['grad_hits'] / max(1, st['grad_calls']):.0f} %) |")
         L.append(f"| chains also compiled whole | {st['whole']} (fraction {run.whole_chain_fraction:g}) |")
+        L.append(f"| compiled programs released (memory-map limit) | {st.get('released', 0)} time(s) |")
         L.append(f"| compiles (backend compiles + traces, all ways) | {comp} ({comp / max(1, n):.1f} per chain, "
                  f"{comp_s:.0f} s) |")
     if run.stopped_early:

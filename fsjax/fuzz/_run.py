@@ -263,6 +263,25 @@ class Runner:
         self.stats = {"stage_calls": 0, "stage_hits": 0, "grad_calls": 0, "grad_hits": 0, "whole": 0}
 
     # -- pieces -----------------------------------------------------------
+    def release_if_needed(self) -> bool:
+        """Drop every compiled program (the runner's and JAX's caches) when the process holds more
+        than half of the kernel's ``vm.max_map_count`` memory mappings: each XLA:CPU executable
+        keeps a few, and at the limit the JIT linker fails ("Failed to materialize symbols") and
+        the process dies. Programs are compiled again on demand. True when released."""
+        if _n_maps() <= _map_limit() // 2:
+            return False
+        import gc
+
+        import jax
+
+        self._vprog.clear()
+        self._jprog.clear()
+        self._gprog.clear()
+        jax.clear_caches()
+        gc.collect()
+        self.stats["released"] = self.stats.get("released", 0) + 1
+        return True
+
     def _build(self, sort: type, kind: str, size: tuple, dtype: str, variant: int):
         key = (sort.__name__, kind, tuple(size), dtype, variant)
         x = self._pool.get(key)
@@ -806,6 +825,22 @@ def _jit(f):
     import jax
 
     return jax.jit(f, compiler_options=STAGE_COMPILER_OPTIONS)
+
+
+def _map_limit() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return 65530
+
+
+def _n_maps() -> int:
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return 0
 
 
 def _avals(tree) -> tuple:

@@ -147,6 +147,23 @@ def test_stage_programs_repeat_across_chains(planted):
     assert o3.times["compiles"] >= staged_compiles + 2  # the whole chain: at least jit(vmap) and grad
 
 
+def test_programs_released_near_the_map_limit(planted, monkeypatch):
+    """Past half of vm.max_map_count the runner drops its compiled programs (the second full run
+    died at the limit: "Failed to materialize symbols"); the next chain compiles again, cleanly."""
+    import fsjax.fuzz._run as fr
+
+    _, specs = planted
+    runner = fz.Runner(specs)
+    c = _chain(["gaussian"], size=(5, 4))
+    assert runner.run(c).status == "ok" and runner._vprog
+    assert not runner.release_if_needed()  # far below the limit
+    monkeypatch.setattr(fr, "_map_limit", lambda: 2 * fr._n_maps() - 2)
+    assert runner.release_if_needed() and not runner._vprog and runner.stats["released"] == 1
+    o = runner.run(c)
+    assert o.status == "ok", o
+    assert runner.stats["stage_hits"] == 0  # compiled again after the release
+
+
 def test_whole_chain_way_catches_the_planted_bugs_too(planted):
     runner, _ = planted
     for ops, cls in ((["planted_jit_differs"], "MISMATCH"), (["planted_nan_grad"], "GRADNAN")):
