@@ -15,7 +15,9 @@
     ``DIR/report.md`` and figures; a running section prints a progress line every 15 s.
 ``fsjax fuzz --chains N --length L --seed S --out DIR`` / ``fsjax fuzz --replay FILE``
     the chain fuzzer (:mod:`fsjax.fuzz`): random typed chains run eager, under jit, vmap
-    and grad; failures classified and minimised into ``DIR/report.md`` and JSON lines.
+    and grad (per-stage compiled programs reused across chains; ``--whole-chain F``: the
+    fraction of chains also compiled whole, default 0.05); failures classified and
+    minimised into ``DIR/report.md`` and JSON lines.
 
 ``fsjax sfm IMAGE_DIR --out DIR [--intrinsics fx,fy,cx,cy] [--ground-truth cameras.json]``
     structure from motion (:mod:`fsjax.sfm`): ``DIR/report.md``, ``DIR/sparse/*.txt`` (COLMAP
@@ -341,6 +343,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--minutes", type=float, help="stop drawing new chains after this many minutes")
     p.add_argument("--no-grad", action="store_true", help="skip the grad way")
+    p.add_argument("--whole-chain", type=float, default=None,
+                   help="fraction of chains also compiled whole, jit(vmap(chain)) and grad (default 0.05; "
+                        "every chain runs through per-stage compiled programs)")
     p.add_argument("--strict", action="store_true", help="exit 1 on SUSPECT/TYPEMISS/MISMATCH/SILENT_OVERFLOW/GRADNAN")
     p.add_argument("--replay", help="JSON-lines file of chains or failure records to run again")
     p.add_argument("--out", help="output directory (report.md, failures.jsonl, minimised.jsonl)")

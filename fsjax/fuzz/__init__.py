@@ -8,8 +8,33 @@ named parameters, random legal values, on a pool of inputs of several sizes and 
 ``skimage.data``, a constant image, 1 x 1, 3 x 5, very large values, a single bright
 pixel; an all-NaN image must be refused at the door). Each chain runs eagerly, under
 ``jit``, under ``vmap`` over a batch of two, and, when every stage is declared
-differentiable, under ``grad`` of a scalar of its output. Every failure lands in exactly
-one class with a signature that groups duplicates:
+differentiable, under ``grad`` of a scalar of its output.
+
+What "under jit" means. Compilation is what a chain costs, so the traced ways run
+**stage by stage through compiled programs that repeat across chains**:
+
+* every stage is one ``jit(vmap(stage))`` program over the batch ``[x, x2]`` (member 0 must
+  equal the eager result), cached per (op, input slot, non-knob parameters, which knobs are
+  given, dtype, input shapes/dtypes/tree structure): knob *values* are traced arguments, so
+  the same op meeting the same shapes again reuses its program. The running batch of one
+  stage's program feeds the next stage's program. Plain ``jit(stage)`` is compiled only to
+  say which way broke (jit or vmap);
+* ``grad`` is the chain rule stage by stage: each stage's cached ``jit(vjp(stage))`` at the
+  eager inputs pulls the cotangent back; the first stage turning a finite cotangent into a
+  NaN is blamed;
+* RECOMPILE: a cached program that compiles again when called with the shapes it was built
+  for; a new program is called a second time (batch reversed: a member's answer must not
+  depend on its position); an eager stage is called a second time the first time its (op,
+  knob values, parameters, input shapes) is seen in a run;
+* the chain compiled **whole** (``jit(vmap(chain))``, ``jit(chain)`` to attribute, and
+  ``jit(value_and_grad)`` of the chain, as before) runs for the fraction
+  ``whole_chain_fraction`` of chains (:func:`fuzz`, default 0.05, drawn from ``(seed,
+  index)``) and for every replayed chain. Only those chains test what XLA does *across*
+  stages (fusion, simplification of one op's output by the next).
+
+Knob values are drawn on a grid of ``1 / KNOB_STEPS`` (concrete values that size kernels
+compile the eager primitives again), and the pool has few sizes and two dtypes, so the
+caches hit. Every failure lands in exactly one class with a signature that groups duplicates:
 
 ``CONTRACT``  a declared sort, batch shape or dtype not kept (or an all-NaN input accepted)
 ``SUSPECT``   a raw exception that is not fsjax's own clear error (``IndexError``, an XLA
@@ -17,11 +42,12 @@ one class with a signature that groups duplicates:
 ``TYPEMISS``  the pipeline checker refused a type-correct chain, or an op refused a sort
               the checker accepted
 ``NONFINITE`` NaN/inf from finite input not explained by a flag (``converged``/``found``
-              False, ``truncated`` True, a ``valid`` mask, a NaN ``Feature`` = "could not measure")
+              False, ``truncated`` True, a ``valid`` mask or a record's scalar ``valid`` False,
+              a NaN ``Feature`` = "could not measure")
 ``MISMATCH``  eager, ``jit`` and ``vmap`` disagree beyond the stated tolerance
 ``GRADNAN``   finite forward, NaN gradient
-``RECOMPILE`` a second call with the same shapes compiles again (eager op-by-op, or the
-              compiled chain)
+``RECOMPILE`` a second call with the same shapes compiles again (eager op-by-op, a stage
+              program, or the chain compiled whole)
 ``GROWTH``    output more than 64 x the input's bytes (+1 MiB)
 ``SILENT_OVERFLOW`` a truncated input whose flag is not passed on, or, for an op with a
               ``capacity`` (drawn small now and then), fewer items kept than the same call at

@@ -17,7 +17,7 @@ import random
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["Chain", "Stage", "SortGraph", "IMAGE_KINDS", "build_input", "generate_chain"]
+__all__ = ["Chain", "Stage", "SortGraph", "IMAGE_KINDS", "KNOB_STEPS", "build_input", "generate_chain"]
 
 # Image inputs of the pool: kind -> (weight, default size). Sizes are few on purpose: every
 # new shape compiles every primitive again.
@@ -265,13 +265,19 @@ class SortGraph:
         return f"second input sort has no pool builder ({', '.join(nopool)})"
 
 
+# knob values on a grid of 1 / KNOB_STEPS: a concrete value that sizes a kernel compiles the
+# eager primitives again, so few values let the eager way's compiled primitives repeat (the
+# traced ways take knobs as traced arguments: their programs do not depend on the value)
+KNOB_STEPS = 10
+
+
 def _draw_knob(rng: random.Random) -> float:
     r = rng.random()
     if r < 0.1:
         return 0.0
     if r < 0.2:
         return 1.0
-    return round(rng.random(), 4)
+    return round(round(rng.random() * KNOB_STEPS) / KNOB_STEPS, 4)
 
 
 def _draw_params(spec, rng: random.Random) -> tuple[tuple[str, Any], ...]:

@@ -20,6 +20,9 @@ from ._run import CLASSES, Outcome, Runner
 __all__ = ["FuzzRun", "fuzz", "load_journal", "minimise", "replay", "write_report", "temporary_ops", "pool_sorts",
            "BLOCKING"]
 
+# the fraction of chains also compiled whole (every chain runs through the per-stage programs)
+WHOLE_CHAIN_FRACTION = 0.05
+
 # classes a CI fuzz fails on (the issue's goal: 0 of each)
 BLOCKING = ("SUSPECT", "TYPEMISS", "MISMATCH", "SILENT_OVERFLOW", "GRADNAN")
 
@@ -69,6 +72,8 @@ class FuzzRun:
     cpu_seconds: float = 0.0        # process CPU time while running chains (the machine may be shared)
     minimise_seconds: float = 0.0
     stopped_early: str = ""
+    whole_chain_fraction: float = 0.0
+    stats: dict = dataclasses.field(default_factory=dict)   # the runner's cache figures
 
     # -- figures ---------------------------------------------------------------
     @property
@@ -138,7 +143,8 @@ def _default_specs():
 def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequence[Any] | None = None,
          minimise_failures: bool = True, grad: bool = True, vmap: bool = True,
          time_budget_s: float | None = None, progress: Callable[[str], None] | None = None,
-         max_minimise_trials: int = 12, minimise_budget_s: float | None = None, journal: str | os.PathLike | None = None) -> FuzzRun:
+         max_minimise_trials: int = 12, minimise_budget_s: float | None = None, journal: str | os.PathLike | None = None,
+         whole_chain_fraction: float = WHOLE_CHAIN_FRACTION) -> FuzzRun:
     """Generate and run ``n_chains`` random typed chains of length ``1..max_length``.
 
     Args:
@@ -150,11 +156,17 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
         their first chain unminimised; recorded).
       journal: a file to which every chain and its outcome is appended as one JSON line as
         it finishes (a long run can be read while it goes).
+      whole_chain_fraction: the fraction of chains also compiled whole (``jit(vmap(chain))``
+        and ``grad`` of the whole chain) besides the per-stage programs every chain runs
+        through; drawn per chain from ``(seed, index)``, so the chains themselves do not change.
     """
+    if not 0.0 <= whole_chain_fraction <= 1.0:
+        raise ValueError(f"fuzz: argument 'whole_chain_fraction' must be in [0, 1], got {whole_chain_fraction!r}")
     specs = list(_default_specs() if specs is None else specs)
     graph = SortGraph(specs, pool_sorts(specs))
     runner = Runner(specs, grad=grad, vmap=vmap)
-    run = FuzzRun(seed, max_length, {s.name: s for s in specs}, graph)
+    run = FuzzRun(seed, max_length, {s.name: s for s in specs}, graph, whole_chain_fraction=whole_chain_fraction)
+    run.stats = runner.stats
     rng = random.Random(seed)
     uses: dict[str, int] = {}
     t0, c0 = time.perf_counter(), time.process_time()
@@ -163,7 +175,9 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
             run.stopped_early = f"time budget {time_budget_s:.0f} s reached after {k} chains"
             break
         chain = generate_chain(graph, rng, max_length, uses)
-        o = runner.run(chain)
+        whole = random.Random(f"{seed}:{k}").random() < whole_chain_fraction
+        runner.release_if_needed()
+        o = runner.run(chain, whole=whole)
         run.results.append((chain, o))
         if journal is not None:
             with open(journal, "a") as fh:
@@ -250,13 +264,14 @@ def minimise(runner: Runner, chain: Chain, outcome: Outcome, *, max_trials: int 
     inputs (the standard scene at 16 x 16, float64). At most ``max_trials`` runs.
     """
     want = (outcome.cls, outcome.op)
+    whole = bool(outcome.times.get("whole", runner.whole_chain))  # the way the failure was found
     trials = [0]
 
     def same(c: Chain) -> bool:
         if trials[0] >= max_trials or not _type_ok(runner, c):
             return False
         trials[0] += 1
-        o = runner.run(c)
+        o = runner.run(c, whole=whole)
         return o.status == "failed" and (o.cls, o.op) == want
 
     best = chain
@@ -305,7 +320,7 @@ def replay(path: str | os.PathLike, *, specs: Sequence[Any] | None = None,
     """Run every chain of a JSON-lines file (a failure record's ``minimised`` chain, else its
     ``chain``, or a bare chain) and print its outcome."""
     specs = list(_default_specs() if specs is None else specs)
-    runner = Runner(specs)
+    runner = Runner(specs, whole_chain=True)  # a replay runs every way, the chain compiled whole too
     outs = []
     for n, line in enumerate(Path(path).read_text().splitlines(), 1):
         if not line.strip():
@@ -358,6 +373,19 @@ def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "")
     L.append(f"| wall time | {run.seconds:.0f} s running ({run.cpu_seconds:.0f} s of process CPU time) + "
              f"{run.minimise_seconds:.0f} s minimising |")
     L.append(f"| ops executed at least once | {executed} of {len(cov)} ({100 * executed / max(1, len(cov)):.1f} %) |")
+    st = run.stats
+    if st:
+        comp = sum(int(o.times.get("compiles", 0)) for _, o in run.results)
+        comp_s = sum(float(o.times.get("compile_s", 0.0)) for _, o in run.results)
+        L.append(f"| chains per minute | {60 * n / max(run.seconds, 1e-9):.1f} |")
+        L.append(f"| stage programs (jit(vmap(stage))) | {st['stage_calls']} calls, {st['stage_hits']} reused "
+                 f"({100 * st['stage_hits'] / max(1, st['stage_calls']):.0f} %) |")
+        L.append(f"| grad programs (jit(vjp(stage))) | {st['grad_calls']} calls, {st['grad_hits']} reused "
+                 f"({100 * st['grad_hits'] / max(1, st['grad_calls']):.0f} %) |")
+        L.append(f"| chains also compiled whole | {st['whole']} (fraction {run.whole_chain_fraction:g}) |")
+        L.append(f"| compiled programs released (memory-map limit) | {st.get('released', 0)} time(s) |")
+        L.append(f"| compiles (backend compiles + traces, all ways) | {comp} ({comp / max(1, n):.1f} per chain, "
+                 f"{comp_s:.0f} s) |")
     if run.stopped_early:
         L.append(f"| stopped early | {run.stopped_early} |")
     L.append("")
@@ -381,7 +409,7 @@ def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "")
     L.append("## Coverage per family\n")
     L.append("| family | ops | executed | drawn (stages) | ran (stages) | refused | failed |\n|---|---|---|---|---|---|---|")
     fams: dict[str, list] = {}
-    for name, d in cov.items():
+    for d in cov.values():
         fams.setdefault(d["family"], []).append(d)
     for fam in sorted(fams):
         ds = fams[fam]
@@ -435,7 +463,9 @@ def cli_main(args) -> int:
     journal.write_text("")
     run = fuzz(args.chains, args.length, args.seed, time_budget_s=args.minutes * 60 if args.minutes else None,
                progress=lambda s: print(s, flush=True), grad=not args.no_grad, journal=journal,
-               minimise_budget_s=max(120.0, 0.15 * 60 * args.minutes) if args.minutes else None)
+               minimise_budget_s=max(120.0, 0.15 * 60 * args.minutes) if args.minutes else None,
+               whole_chain_fraction=WHOLE_CHAIN_FRACTION if getattr(args, "whole_chain", None) is None
+               else args.whole_chain)
     path = write_report(run, args.out, command=cmd)
     cc = {k: v for k, v in run.class_counts().items() if v}
     print(f"fsjax fuzz: {len(run.results)} chains in {run.seconds:.0f} s; ops executed "

@@ -27,7 +27,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from ._gen import Chain, build_input, extra_input, float_dtype, knob_values
+from ._gen import SIZES, Chain, build_input, float_dtype, knob_values, raster_size
 
 __all__ = ["CLASSES", "Outcome", "Runner"]
 
@@ -74,7 +74,7 @@ class _Fail(Exception):
 # compile counting
 # ---------------------------------------------------------------------------
 
-_COMPILES = {"n": 0}
+_COMPILES = {"n": 0, "s": 0.0}   # backend compiles + traces, and their seconds
 _LISTENING = {"on": False}
 
 
@@ -88,6 +88,7 @@ def _listen() -> None:
     def on(event, duration, **kw):
         if event in events:
             _COMPILES["n"] += 1
+            _COMPILES["s"] += float(duration)
 
     jax.monitoring.register_event_duration_secs_listener(on)
     _LISTENING["on"] = True
@@ -235,9 +236,16 @@ def _differ(x, y, dtype: str, nan_only: list | None = None) -> str | None:
 
 
 class Runner:
-    """Runs chains over the ops ``specs`` (``OpSpec`` list) and classifies the outcome."""
+    """Runs chains over the ops ``specs`` (``OpSpec`` list) and classifies the outcome.
 
-    def __init__(self, specs: Sequence[Any], *, grad: bool = True, vmap: bool = True):
+    ``whole_chain``: besides the per-stage compiled programs (always), also compile the
+    chain whole (``jit(vmap(chain))`` and ``jit(value_and_grad)``) -- the default of
+    :meth:`run`; :func:`fsjax.fuzz.fuzz` turns it on for a stated fraction of chains.
+    Compiled stage programs, pool inputs and eager recompile checks are cached on the
+    runner across chains (the cache is the point: one runner per run).
+    """
+
+    def __init__(self, specs: Sequence[Any], *, grad: bool = True, vmap: bool = True, whole_chain: bool = False):
         _listen()
         self.specs = {s.name: s for s in specs}
         self.sorts = {}
@@ -246,16 +254,52 @@ class Runner:
                 self.sorts[t.__name__] = t
         self.do_grad = grad
         self.do_vmap = vmap
+        self.whole_chain = whole_chain
+        self._pool: dict = {}          # (sort, kind, size, dtype, variant) -> input
+        self._vprog: dict = {}         # stage key -> jit(vmap(stage))
+        self._jprog: dict = {}         # stage key -> jit(stage)
+        self._gprog: dict = {}         # stage key -> jit(vjp of stage)
+        self._eager_seen: set = set()  # eager stage keys whose second call was checked
+        self.stats = {"stage_calls": 0, "stage_hits": 0, "grad_calls": 0, "grad_hits": 0, "whole": 0}
 
     # -- pieces -----------------------------------------------------------
+    def release_if_needed(self) -> bool:
+        """Drop every compiled program (the runner's and JAX's caches) when the process holds more
+        than half of the kernel's ``vm.max_map_count`` memory mappings: each XLA:CPU executable
+        keeps a few, and at the limit the JIT linker fails ("Failed to materialize symbols") and
+        the process dies. Programs are compiled again on demand. True when released."""
+        if _n_maps() <= _map_limit() // 2:
+            return False
+        import gc
+
+        import jax
+
+        self._vprog.clear()
+        self._jprog.clear()
+        self._gprog.clear()
+        jax.clear_caches()
+        gc.collect()
+        self.stats["released"] = self.stats.get("released", 0) + 1
+        return True
+
+    def _build(self, sort: type, kind: str, size: tuple, dtype: str, variant: int):
+        key = (sort.__name__, kind, tuple(size), dtype, variant)
+        x = self._pool.get(key)
+        if x is None:
+            x = self._pool[key] = build_input(sort, kind, tuple(size), dtype, variant)
+        return x
+
     def _inputs(self, chain: Chain, variant: int):
         i = chain.inp
-        return build_input(self.sorts[i["sort"]], i["kind"], tuple(i["size"]), i["dtype"], variant)
+        return self._build(self.sorts[i["sort"]], i["kind"], tuple(i["size"]), i["dtype"], variant)
 
     def _assemble(self, st, spec, cur, dtype: str) -> tuple:
         args = []
         for j, t in enumerate(spec.takes):
-            args.append(cur if j == st.slot else extra_input(t, cur, dtype, 1))
+            if j == st.slot:
+                args.append(cur)
+            else:
+                args.append(self._build(t, "scene", raster_size(cur) or SIZES[0], dtype, 1))
         return tuple(args)
 
     def _traced(self, chain: Chain, dtype: str):
@@ -273,6 +317,38 @@ class Runner:
             return tuple(outs)
 
         return f
+
+    # -- per-stage compiled programs ------------------------------------------------
+    @staticmethod
+    def _stage_fn(st, spec):
+        params = dict(st.params)
+
+        def f(x, extras, kn):
+            args = list(extras)
+            args.insert(st.slot, x)
+            a = kn[0] if st.a is not None else None
+            b = kn[1] if st.b is not None else None
+            return spec.fn(*args, **spec.knob_params(a, b, strict=False), **params)
+
+        return f
+
+    @staticmethod
+    def _stage_key(st, x, extras, dtype: str) -> tuple:
+        """What a compiled stage program depends on: the op, its static choices, the input avals."""
+        return (st.op, st.slot, st.params, st.a is None, st.b is None, dtype, _avals(x), _avals(extras))
+
+    def _call(self, cache: dict, key: tuple, make, *args):
+        """``(output, hit)``: the cached program for ``key`` (made on a miss) called on ``args``;
+        a hit that compiles again is a RECOMPILE (raised by the caller: ``hit`` and ``compiled``)."""
+        import jax
+
+        prog = cache.get(key)
+        hit = prog is not None
+        if not hit:
+            prog = cache[key] = make()
+        c0 = _COMPILES["n"]
+        y = jax.block_until_ready(prog(*args))
+        return y, hit, _COMPILES["n"] != c0
 
     # -- checks on one eager stage output ------------------------------------
     def _check_stage(self, i: int, spec, ins: tuple, out, kp: dict, params: tuple) -> None:
@@ -340,6 +416,9 @@ class Runner:
             v = getattr(out, f, None)
             if v is not None and not bool(np.all(np.asarray(v))):
                 return
+        v = getattr(out, "valid", None)  # a record's own validity flag (Match3D: NaN pose when not valid)
+        if v is not None and np.ndim(v) == 0 and np.asarray(v).dtype == np.bool_ and not bool(v):
+            return
         t = getattr(out, "truncated", None)
         if t is not None and bool(np.any(np.asarray(t))):
             return
@@ -348,12 +427,16 @@ class Runner:
         raise _Fail("NONFINITE", i, op, mode, "inf in the output" if infs else "NaN in the output")
 
     # -- the four ways ----------------------------------------------------------
-    def run(self, chain: Chain) -> Outcome:
-        t0 = time.perf_counter()
+    def run(self, chain: Chain, *, whole: bool | None = None) -> Outcome:
+        """Run ``chain`` every way; ``whole`` (default: the runner's ``whole_chain``) also
+        compiles the chain whole."""
+        t0, p0 = time.perf_counter(), time.process_time()
+        c0, s0 = _COMPILES["n"], _COMPILES["s"]
         out = Outcome("ok")
         self._pending = None
+        whole = self.whole_chain if whole is None else whole
         try:
-            self._run(chain, out)
+            self._run(chain, out, whole)
             if self._pending is not None:
                 raise self._pending
         except _Fail as f:
@@ -364,12 +447,15 @@ class Runner:
             out.status = "error"
             out.message = _first_line(e)
         out.seconds = time.perf_counter() - t0
+        out.times["compiles"] = _COMPILES["n"] - c0
+        out.times["compile_s"] = _COMPILES["s"] - s0
+        out.times["whole"] = bool(whole)
+        out.times["cpu_s"] = time.process_time() - p0   # process CPU time (the machine may be shared)
         return out
 
-    def _run(self, chain: Chain, out: Outcome) -> None:
+    def _run(self, chain: Chain, out: Outcome, whole: bool) -> None:
         import jax
         import jax.numpy as jnp
-        import numpy as np
 
         from fsjax.pipeline import PipelineTypeError, pipeline
         from fsjax.pipeline import Stage as PStage
@@ -389,6 +475,7 @@ class Runner:
         executed = []
         cur = x
         eager_outs = []
+        stage_ins = []   # the eager inputs of every stage (all slots)
         n_ok = len(chain.stages)
         for i, (st, spec) in enumerate(zip(chain.stages, specs)):
             ins = self._assemble(st, spec, cur, dtype)
@@ -407,30 +494,201 @@ class Runner:
             self._check_stage(i, spec, ins, y, kp, st.params)
             executed.append(spec.name)
             eager_outs.append(y)
+            stage_ins.append(ins)
             cur = y
         out.executed = tuple(executed)
         if n_ok == 0:
             return
         chain = chain.replace(stages=chain.stages[:n_ok])
         specs = specs[:n_ok]
-        # eager again on the same input: op-by-op dispatch is cached, nothing may compile
-        cur = x
+        # eager again on the same input: op-by-op dispatch is cached, nothing may compile. Checked
+        # the first time a stage (op, knob values, parameters, input shapes) is seen in this run.
         self._pending = None
         for i, (st, spec) in enumerate(zip(chain.stages, specs)):
-            ins = self._assemble(st, spec, cur, dtype)
+            ins = stage_ins[i]
+            ekey = (st.op, st.slot, st.a, st.b, st.params, dtype, _avals(ins))
+            if ekey in self._eager_seen:
+                continue
+            self._eager_seen.add(ekey)
             kp = spec.knob_params(st.a, st.b, strict=True)
             c0 = _COMPILES["n"]
-            cur = spec.fn(*ins, **kp, **dict(st.params))
-            jax.block_until_ready(cur)
+            jax.block_until_ready(spec.fn(*ins, **kp, **dict(st.params)))
             if _COMPILES["n"] != c0 and self._pending is None:
                 # reported only when nothing else fails: the traced ways still run
                 self._pending = _Fail("RECOMPILE", i, spec.name, "eager",
-                                "a second eager call with the same input compiled again")
+                                      "a second eager call with the same input compiled again")
         out.times["eager"] = time.perf_counter() - t_start
         x2 = self._inputs(chain, 1)
+        t_start = time.perf_counter()
+        self._staged(chain, specs, x, x2, stage_ins, eager_outs, dtype, out)
+        out.times["staged"] = time.perf_counter() - t_start
+        differentiable = self.do_grad and all(s.differentiable for s in specs)
+        if differentiable:
+            t_start = time.perf_counter()
+            self._grad_staged(chain, specs, stage_ins, eager_outs, dtype)
+            out.times["grad"] = time.perf_counter() - t_start
+        if not whole:
+            return
+        self.stats["whole"] += 1
         knobs = jnp.asarray(knob_values(chain), dtype=dtype)
         f = self._traced(chain, dtype)
         t_start = time.perf_counter()
+        self._whole(chain, f, x, x2, knobs, eager_outs, dtype, out)
+        out.times["whole_traced"] = time.perf_counter() - t_start
+        if differentiable:
+            t_start = time.perf_counter()
+            self._grad(chain, f, x, knobs, None)
+            out.times["whole_grad"] = time.perf_counter() - t_start
+
+    # -- the traced ways, stage by stage -------------------------------------------
+    def _staged(self, chain, specs, x, x2, stage_ins, eager_outs, dtype, out) -> None:
+        """Each stage through its cached ``jit(vmap(stage))`` over the batch ``[x, x2]`` (member 0
+        must equal the eager result); the running batch feeds the next stage's program."""
+        import jax
+        import jax.numpy as jnp
+
+        batched = False
+        cur = x
+        if self.do_vmap:
+            try:
+                cur = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), x, x2)
+                batched = True
+            except ValueError:
+                cur = x  # the two variants differ in static fields: no batch
+        for i, (st, spec) in enumerate(zip(chain.stages, specs)):
+            op = spec.name
+            extras = tuple(a for j, a in enumerate(stage_ins[i]) if j != st.slot)
+            kn = jnp.asarray([0.5 if st.a is None else st.a, 0.5 if st.b is None else st.b], dtype=dtype)
+            member = jax.tree_util.tree_map(lambda v: v[0], cur) if batched else cur
+            key = self._stage_key(st, member, extras, dtype)
+            f = self._stage_fn(st, spec)
+            mode = "vmap" if batched else "jit"
+            self.stats["stage_calls"] += 1
+            try:
+                if batched:
+                    y, hit, compiled = self._call(self._vprog, key, lambda f=f: _jit(jax.vmap(f, in_axes=(0, None, None))),
+                                                  cur, extras, kn)
+                else:
+                    y, hit, compiled = self._call(self._jprog, key, lambda f=f: _jit(f), cur, extras, kn)
+            except Exception as e:  # noqa: BLE001 - classified
+                if not batched or self._stage_jit(i, st, f, key, member, extras, kn, eager_outs[i], dtype, out):
+                    self._stage_error(e, i, op, mode, out)
+                return
+            self.stats["stage_hits"] += hit
+            if hit and compiled:
+                raise _Fail("RECOMPILE", i, op, mode, "a cached stage program called again with the same shapes "
+                            "compiled again")
+            got = jax.tree_util.tree_map(lambda v: v[0], y) if batched else y
+            nans: list = []
+            d = _differ(got, eager_outs[i], dtype, nans)
+            if nans and not d:
+                self._check_finite(i, op, got, mode)
+                return  # failed closed under the trace: later stages would see other data
+            if d:
+                if not batched or self._stage_jit(i, st, f, key, member, extras, kn, eager_outs[i], dtype, out):
+                    raise _Fail("MISMATCH", i, op, mode, f"{mode} vs eager: " + d.split(" (")[0], d)
+                return
+            if not hit:
+                # a new program: called again with the same shapes (the batch reversed) it must not
+                # compile, and a member's answer must not depend on its position
+                rev = jax.block_until_ready(jax.tree_util.tree_map(lambda v: v[::-1], cur)) if batched else None
+                c0 = _COMPILES["n"]
+                if batched:
+                    y2 = jax.block_until_ready(self._vprog[key](rev, extras, kn))
+                else:
+                    y2 = jax.block_until_ready(self._jprog[key](cur, extras, kn))
+                if _COMPILES["n"] != c0:
+                    raise _Fail("RECOMPILE", i, op, mode, "a compiled stage program called again with the same shapes "
+                                "compiled again")
+                if batched:
+                    d = _differ(jax.tree_util.tree_map(lambda v: v[1], y2), got, dtype)
+                    if d:
+                        raise _Fail("MISMATCH", i, op, "vmap", "batch member depends on its position: " + d.split(" (")[0],
+                                    d)
+            cur = y
+
+    def _stage_jit(self, i, st, f, key, member, extras, kn, ye, dtype, out) -> bool:
+        """Plain ``jit(stage)`` on member 0's input: raises a ``_Fail`` for a broken jit way; True
+        when jit is sound (so the vmap way is to blame)."""
+
+        try:
+            yj, _, _ = self._call(self._jprog, key, lambda: _jit(f), member, extras, kn)
+        except Exception as e:  # noqa: BLE001 - classified
+            self._stage_error(e, i, st.op, "jit", out)
+            return False
+        nans: list = []
+        d = _differ(yj, ye, dtype, nans)
+        if nans and not d:
+            self._check_finite(i, st.op, yj, "jit")
+            return False
+        if d:
+            raise _Fail("MISMATCH", i, st.op, "jit", "jit vs eager: " + d.split(" (")[0], d)
+        return True
+
+    def _stage_error(self, e: BaseException, i: int, op: str, mode: str, out: Outcome) -> None:
+        r = classify_exception(e, op, i, mode)
+        if isinstance(r, _Fail):
+            raise r from None
+        out.refused_traced = (op, r[1])
+
+    def _grad_staged(self, chain, specs, stage_ins, eager_outs, dtype) -> None:
+        """``grad`` of the scalar of :meth:`_grad_nan` through the chain, as the composition of
+        each stage's cached ``jit(vjp(stage))`` at the eager inputs (the chain rule, stage by
+        stage); a NaN cotangent from a finite one blames that stage."""
+        import jax
+        import jax.numpy as jnp
+        import numpy as np
+
+        key0 = jax.random.PRNGKey(7)
+        y = eager_outs[-1]
+        valid = getattr(y, "valid", None)
+        ct = []
+        total = 0.0
+        for j, leaf in enumerate(jax.tree_util.tree_leaves(y)):
+            if not jnp.issubdtype(jnp.result_type(leaf), jnp.inexact):
+                continue
+            w = jax.random.normal(jax.random.fold_in(key0, j), jnp.shape(leaf), dtype=jnp.result_type(leaf))
+            ok = jnp.isfinite(leaf)
+            if valid is not None and valid.dtype == jnp.bool_ and valid.ndim and leaf.shape[: valid.ndim] == valid.shape:
+                ok = ok & valid.reshape(valid.shape + (1,) * (leaf.ndim - valid.ndim))
+            total = total + float(jnp.sum(jnp.where(ok, leaf, 0.0) * w))
+            ct.append(jnp.where(ok, w, 0.0))
+        if not np.isfinite(total):
+            return  # forward not finite: NONFINITE's business
+        for i in range(len(chain.stages) - 1, -1, -1):
+            st, spec = chain.stages[i], specs[i]
+            ins = stage_ins[i]
+            xin = ins[st.slot]
+            extras = tuple(a for j, a in enumerate(ins) if j != st.slot)
+            kn = jnp.asarray([0.5 if st.a is None else st.a, 0.5 if st.b is None else st.b], dtype=dtype)
+            leaves, tdef = jax.tree_util.tree_flatten(xin)
+            fl = tuple(k for k, v in enumerate(leaves) if jnp.issubdtype(jnp.result_type(v), jnp.inexact))
+            xf = [leaves[k] for k in fl]
+            xo = [v for k, v in enumerate(leaves) if k not in fl]
+            key = ("grad",) + self._stage_key(st, xin, extras, dtype)
+            self.stats["grad_calls"] += 1
+            g = self._stage_fn(st, spec)
+            try:
+                (gx, gk), hit, compiled = self._call(self._gprog, key, lambda g=g, t=tdef, k=fl: _jit(
+                    _vjp_program(g, t, k)), xf, xo, extras, kn, ct)
+            except Exception as e:  # noqa: BLE001 - classified
+                self._stage_error(e, i, st.op, "grad", Outcome("ok"))
+                return
+            self.stats["grad_hits"] += hit
+            if hit and compiled:
+                raise _Fail("RECOMPILE", i, st.op, "grad", "a cached stage program called again with the same shapes "
+                            "compiled again")
+            if any(not bool(np.all(np.isfinite(np.asarray(g)))) for g in (*gx, gk)):
+                raise _Fail("GRADNAN", i, st.op, "grad", "NaN gradient, finite forward")
+            ct = list(gx)
+
+    # -- the traced ways, the chain compiled whole ---------------------------------
+    def _whole(self, chain, f, x, x2, knobs, eager_outs, dtype, out) -> None:
+        """``jit(vmap(chain))`` over ``[x, x2]``: member 0 must equal the eager result; plain
+        ``jit(chain)`` is compiled only to say which way broke."""
+        import jax
+        import jax.numpy as jnp
+
         xb = None
         if self.do_vmap:
             try:
@@ -439,44 +697,37 @@ class Runner:
                 xb = None  # the two variants differ in static fields: no batch
         if xb is None:
             self._jit_way(chain, f, x, x2, knobs, eager_outs, dtype, out)
-        else:
-            # one compiled program serves both traced ways: jit(vmap(chain)) over [x, x2]; member 0
-            # must equal the eager result. Plain jit(chain) is compiled only to say which way broke.
-            vf = jax.jit(jax.vmap(f, in_axes=(0, None)))
-            try:
-                yb = jax.block_until_ready(vf(xb, knobs))
-            except Exception as e:  # noqa: BLE001 - classified
+            return
+        vf = jax.jit(jax.vmap(f, in_axes=(0, None)))
+        try:
+            yb = jax.block_until_ready(vf(xb, knobs))
+        except Exception as e:  # noqa: BLE001 - classified
+            if self._jit_way(chain, f, x, x2, knobs, eager_outs, dtype, out):
+                self._traced_error(e, chain, "vmap", out)
+            return
+        for i, ye in enumerate(eager_outs):
+            got = jax.tree_util.tree_map(lambda v: v[0], yb[i])
+            nans: list = []
+            d = _differ(got, ye, dtype, nans)
+            if nans and not d:
+                self._check_finite(i, chain.stages[i].op, got, "vmap")
+                break  # failed closed under the trace: later stages saw other data
+            if d:
                 if self._jit_way(chain, f, x, x2, knobs, eager_outs, dtype, out):
-                    self._traced_error(e, chain, "vmap", out)
+                    raise _Fail("MISMATCH", i, chain.stages[i].op, "vmap", "vmap vs eager: " + d.split(" (")[0], d)
                 return
-            for i, ye in enumerate(eager_outs):
-                got = jax.tree_util.tree_map(lambda v: v[0], yb[i])
-                nans: list = []
-                d = _differ(got, ye, dtype, nans)
-                if nans and not d:
-                    self._check_finite(i, chain.stages[i].op, got, "vmap")
-                    break  # failed closed under the trace: later stages saw other data
-                if d:
-                    if self._jit_way(chain, f, x, x2, knobs, eager_outs, dtype, out):
-                        raise _Fail("MISMATCH", i, chain.stages[i].op, "vmap", "vmap vs eager: " + d.split(" (")[0], d)
-                    return
-            xs = jax.tree_util.tree_map(lambda v: v[::-1], xb)
-            c0 = _COMPILES["n"]
-            yb2 = jax.block_until_ready(vf(xs, knobs))
-            if _COMPILES["n"] != c0:
-                raise _Fail("RECOMPILE", None, None, "jit",
-                            "second call of the compiled chain with the same shapes compiled again")
-            for i in range(len(eager_outs)):
-                d = _differ(jax.tree_util.tree_map(lambda v: v[1], yb2[i]),
-                            jax.tree_util.tree_map(lambda v: v[0], yb[i]), dtype)
-                if d:
-                    raise _Fail("MISMATCH", i, chain.stages[i].op, "vmap",
-                                "batch member depends on its position: " + d.split(" (")[0], d)
-        out.times["traced"] = time.perf_counter() - t_start
-        t_start = time.perf_counter()
-        if self.do_grad and all(s.differentiable for s in specs):
-            self._grad(chain, f, x, knobs, None)
-            out.times["grad"] = time.perf_counter() - t_start
+        xs = jax.tree_util.tree_map(lambda v: v[::-1], xb)
+        c0 = _COMPILES["n"]
+        yb2 = jax.block_until_ready(vf(xs, knobs))
+        if _COMPILES["n"] != c0:
+            raise _Fail("RECOMPILE", None, None, "jit",
+                        "second call of the compiled chain with the same shapes compiled again")
+        for i in range(len(eager_outs)):
+            d = _differ(jax.tree_util.tree_map(lambda v: v[1], yb2[i]),
+                        jax.tree_util.tree_map(lambda v: v[0], yb[i]), dtype)
+            if d:
+                raise _Fail("MISMATCH", i, chain.stages[i].op, "vmap",
+                            "batch member depends on its position: " + d.split(" (")[0], d)
 
     def _jit_way(self, chain, f, x, x2, knobs, eager_outs, dtype, out) -> bool:
         """Plain ``jit(chain)``: raises a ``_Fail`` for a broken jit way; True when jit is sound."""
@@ -561,6 +812,65 @@ class Runner:
         if not np.isfinite(float(val)):
             return False  # forward not finite: NONFINITE's business (flagged, or caught eagerly)
         return any(not bool(np.all(np.isfinite(np.asarray(g)))) for g in (*gx, gk))
+
+
+# per-stage programs compile at XLA's backend (LLVM) optimisation level 0: about half the compile
+# time on a 16 x 16 input, where running costs milliseconds either way. The HLO passes (fusion,
+# algebraic simplification) run as at the default level; LLVM at level 0 keeps IEEE semantics
+# (no fast-math), so a result may differ only by what differs at every level.
+STAGE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+
+
+def _jit(f):
+    import jax
+
+    return jax.jit(f, compiler_options=STAGE_COMPILER_OPTIONS)
+
+
+def _map_limit() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return 65530
+
+
+def _n_maps() -> int:
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return 0
+
+
+def _avals(tree) -> tuple:
+    """Tree structure (static fields included) and every leaf's shape, dtype and weak type."""
+    import jax
+    import jax.numpy as jnp
+
+    leaves, tdef = jax.tree_util.tree_flatten(tree)
+    return (tdef, tuple((jnp.shape(v), str(jnp.result_type(v)), bool(getattr(v, "weak_type", False)))
+                        for v in leaves))
+
+
+def _vjp_program(f, tdef, fl: tuple):
+    """``(xf, xo, extras, kn, ct) -> (d xf, d kn)``: the pull-back of one stage ``f(x, extras, kn)``
+    through its inexact input leaves ``xf`` (``xo``: the others) and knobs, for the cotangent
+    ``ct`` of its inexact output leaves."""
+    import jax
+    import jax.numpy as jnp
+
+    def prog(xf, xo, extras, kn, ct):
+        def fwd(xf_, kn_):
+            it_f, it_o = iter(xf_), iter(xo)
+            leaves = [next(it_f) if k in fl else next(it_o) for k in range(len(xf_) + len(xo))]
+            y = f(jax.tree_util.tree_unflatten(tdef, leaves), extras, kn_)
+            return [v for v in jax.tree_util.tree_leaves(y) if jnp.issubdtype(jnp.result_type(v), jnp.inexact)]
+
+        ys, pull = jax.vjp(fwd, list(xf), kn)
+        return pull([jnp.asarray(c, dtype=jnp.result_type(p)) for c, p in zip(ct, ys)])
+
+    return prog
 
 
 def _n_found(x) -> int | None:

@@ -19,7 +19,7 @@ from fsjax import Contour, Image, Region
 from fsjax.registry import register
 
 PLANTED = ("planted_wrong_sort", "planted_odd_index", "planted_recompile", "planted_overflow",
-           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs")
+           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs", "planted_match_nan")
 
 
 def _plant():
@@ -59,6 +59,13 @@ def _plant():
     def planted_traced_nan(img: Image) -> Image:
         """Planted bug: NaN under a trace where the eager call is finite (an Image has no NaN flag)."""
         return Image(img.data if fsjax.types.is_concrete(img.data) else img.data * jnp.nan)
+
+    @register(family="planted", takes=Image, gives=fsjax.Match3D)
+    def planted_match_nan(img: Image, *, flag: bool = False) -> fsjax.Match3D:
+        """A record with NaN pose: explained when its ``valid`` is False (``flag``), a bug when True."""
+        nan = jnp.full((), jnp.nan, img.data.dtype)
+        return fsjax.Match3D(jnp.full((3, 3), nan), jnp.full((3,), nan), nan,
+                             jnp.asarray(flag), jnp.asarray(0 if flag else 1, jnp.int32))
 
     @register(family="planted", takes=Image, gives=Image)
     def planted_jit_differs(img: Image) -> Image:
@@ -111,6 +118,67 @@ def test_clean_chains_pass_and_odd_size_alone_is_fine(planted):
     assert o.executed == ("gaussian", "mean")
     # an overflow that is flagged is not a failure: the same op at its default capacity
     assert runner.run(_chain(["planted_overflow"])).status == "ok"
+
+
+def test_stage_programs_repeat_across_chains(planted):
+    """The per-stage compiled programs are reused when an op meets the same shapes again (knob
+    values are traced), and a chain made only of seen stages compiles nothing new in the traced
+    ways; the null, compiling the chain whole, compiles again for every new chain."""
+    _, specs = planted
+    runner = fz.Runner(specs)
+    c1 = _chain(["gaussian", "mean"], size=(9, 8))
+    c2 = fz.Chain.from_json({**c1.to_json(), "stages": [{"op": "gaussian", "a": 0.7, "b": None, "params": {},
+                                                          "slot": 0}, {"op": "mean", "a": None, "b": None,
+                                                                       "params": {}, "slot": 0}]})
+    c1 = fz.Chain.from_json({**c1.to_json(), "stages": [{**s.to_json(), "a": 0.2 if s.op == "gaussian" else None}
+                                                         for s in c1.stages]})
+    o1 = runner.run(c1)
+    assert o1.status == "ok", o1
+    assert runner.stats["stage_hits"] == 0 and runner.stats["stage_calls"] == 2
+    o2 = runner.run(c2)  # another knob value: the same two stage programs and grad programs
+    assert o2.status == "ok", o2
+    assert runner.stats["stage_hits"] == 2 and runner.stats["grad_hits"] == runner.stats["grad_calls"] // 2
+    staged_compiles = o2.times["compiles"]
+    o3 = runner.run(c2, whole=True)  # the null: the chain compiled whole (jit(vmap), jit, grad)
+    assert o3.status == "ok", o3
+    assert runner.stats["whole"] == 1
+    print(f"compiles: first chain {o1.times['compiles']}, same stages again {staged_compiles}, "
+          f"compiled whole {o3.times['compiles']}")
+    assert o3.times["compiles"] >= staged_compiles + 2  # the whole chain: at least jit(vmap) and grad
+
+
+def test_programs_released_near_the_map_limit(planted, monkeypatch):
+    """Past half of vm.max_map_count the runner drops its compiled programs (the second full run
+    died at the limit: "Failed to materialize symbols"); the next chain compiles again, cleanly."""
+    import fsjax.fuzz._run as fr
+
+    _, specs = planted
+    runner = fz.Runner(specs)
+    c = _chain(["gaussian"], size=(5, 4))
+    assert runner.run(c).status == "ok" and runner._vprog
+    assert not runner.release_if_needed()  # far below the limit
+    monkeypatch.setattr(fr, "_map_limit", lambda: 2 * fr._n_maps() - 2)
+    assert runner.release_if_needed() and not runner._vprog and runner.stats["released"] == 1
+    o = runner.run(c)
+    assert o.status == "ok", o
+    assert runner.stats["stage_hits"] == 0  # compiled again after the release
+
+
+def test_whole_chain_way_catches_the_planted_bugs_too(planted):
+    runner, _ = planted
+    for ops, cls in ((["planted_jit_differs"], "MISMATCH"), (["planted_nan_grad"], "GRADNAN")):
+        o = runner.run(_chain(ops, size=(6, 6)), whole=True)
+        assert (o.status, o.cls, o.op) == ("failed", cls, ops[0]), o
+
+
+def test_record_valid_flag_explains_nan(planted):
+    """Match3D's scalar ``valid`` False explains its NaN pose (the full run's moments_pose3d and
+    lm_rotation_z3d were reported NONFINITE for it); NaN with ``valid`` True is still caught."""
+    runner, _ = planted
+    o = runner.run(_chain(["planted_match_nan"], size=(4, 4)))
+    assert o.status == "ok", o
+    o = runner.run(_chain(["planted_match_nan"], size=(4, 4), params={"planted_match_nan": {"flag": True}}))
+    assert (o.status, o.cls, o.op) == ("failed", "NONFINITE", "planted_match_nan"), o
 
 
 def test_all_nan_refused_at_the_door(planted):
@@ -170,7 +238,7 @@ def test_generated_chains_type_correct_and_report(planted, tmp_path):
 # the bounded fuzz CI runs: a fixed seed over the whole registry
 # ---------------------------------------------------------------------------
 
-BOUNDED_CHAINS = 5
+BOUNDED_CHAINS = 20
 BOUNDED_LENGTH = 3
 BOUNDED_SEED = 2026
 
@@ -179,11 +247,18 @@ BOUNDED_SEED = 2026
 def test_bounded_fuzz_whole_registry():
     """A fixed-seed fuzz over every registered op fails on any blocking class.
 
-    Sized for the suite (a few chains; the full run is docs/fuzz.md): each failure's
-    replayable chain is in the assertion message.
+    Sized for the suite: about a minute of CPU time on the 2-core development machine with
+    per-stage compiled programs (40 chains took 123 s of CPU time there, 550 s of wall time
+    under a load average of 13; docs/fuzz.md). A short run reuses few stage programs: the
+    generator draws every op once before it repeats one. The full run is in docs/fuzz.md.
+    Each failure's replayable chain is in the assertion message.
     """
     run = fz.fuzz(BOUNDED_CHAINS, BOUNDED_LENGTH, seed=BOUNDED_SEED, minimise_failures=False)
+    print(f"bounded fuzz: {len(run.results)} chains in {run.seconds:.0f} s ({run.cpu_seconds:.0f} s CPU), "
+          f"stage programs {run.stats['stage_calls']} calls, {run.stats['stage_hits']} reused, "
+          f"{run.stats['whole']} chain(s) compiled whole, ops executed {100 * run.executed_fraction():.0f} %")
     assert len(run.results) == BOUNDED_CHAINS
     assert sum(len(o.executed) for _, o in run.results) >= BOUNDED_CHAINS  # it did run ops
+    assert run.stats["stage_calls"] >= BOUNDED_CHAINS and run.stats["whole"] >= 1  # staged; one chain ran whole
     bad = [f"{o.signature}\n  {json.dumps(c.to_json())}" for c, o in run.failures if o.cls in fz.BLOCKING]
     assert not bad, "\n".join(bad)

@@ -37,3 +37,58 @@ def test_float32_contour_fits(chain):
     r32 = spec.fn(x)
     assert r32.params.dtype == jnp.float32 and bool(r32.converged)
     assert bool(jnp.all(jnp.isfinite(r32.params))) and float(r32.rms) < 1.0
+
+
+# distance_transform of a region with no background pixel returned +inf everywhere (the distance
+# to an empty set), unflagged, into whatever came next (NONFINITE in the full run of docs/fuzz.md,
+# there after ncc_map -> local_mean made the region all-foreground; minimised here to the
+# complement of an empty region). Fixed in ops/image/_distance.py: the frame just outside the
+# image is the background then, a documented finite value.
+NO_BACKGROUND = {"input": {"sort": "Region", "kind": "empty", "size": [15, 17], "dtype": "float64", "variant": 0},
+                 "stages": [{"op": "region_not", "a": None, "b": None, "params": {}, "slot": 0},
+                            {"op": "distance_transform", "a": None, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_distance_transform_without_background_is_finite():
+    """The chain replayed (eager, per-stage jit(vmap), the recompile checks) is
+    clean, and the value is the documented one: the distance to the image frame."""
+    import numpy as np
+
+    c = fz.Chain.from_json(NO_BACKGROUND)
+    runner = fz.Runner([fsjax.get_op("region_not"), fsjax.get_op("distance_transform")])
+    o = runner.run(c)
+    assert o.status == "ok", o
+    x = fz.build_input(fsjax.Region, "empty", (15, 17), "float64")
+    d = np.asarray(fsjax.ops.distance_transform(fsjax.ops.region_not(x)).data)
+    i, j = np.mgrid[:15, :17]
+    want = np.minimum(np.minimum(i + 1, 15 - i), np.minimum(j + 1, 17 - j))
+    np.testing.assert_array_equal(d, want)
+    assert d.max() == 8.0  # the centre row is 8 px from the top and bottom frames
+
+
+# phase_correlation returned a float64 Match for float32 images when x64 is on (CONTRACT "dtype not
+# kept", in the full run of docs/fuzz.md, minimised to the op alone on the pool's float32 scene):
+# the peak normalisation divided by an integer count of the phase-carrying bins, which x64 makes
+# int64. Fixed in ops/matching/_correlation.py (the normalisation in the image dtype).
+PHASE_F32 = {"input": {"sort": "Image", "kind": "scene", "size": [16, 16], "dtype": "float32", "variant": 0},
+             "stages": [{"op": "phase_correlation", "a": None, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_phase_correlation_keeps_float32():
+    """The minimised chain's stage on its inputs: float32 kept, and the same shift as in float64
+    (to float32 rounding)."""
+    import numpy as np
+
+    c = fz.Chain.from_json(PHASE_F32)
+    spec = fsjax.get_op("phase_correlation")
+    res = {}
+    for dt in ("float32", "float64"):
+        x = fz.build_input(fsjax.Image, c.inp["kind"], c.inp["size"], dt)
+        moving = fz.build_input(fsjax.Image, "scene", c.inp["size"], dt, 1)  # the pool's second input
+        res[dt] = spec.fn(x, moving)
+    m32, m64 = res["float32"], res["float64"]
+    assert m32.row.dtype == jnp.float32 and m32.score.dtype == jnp.float32
+    assert m64.row.dtype == jnp.float64
+    np.testing.assert_allclose(np.asarray(m32.row), np.asarray(m64.row), atol=1e-3)
+    np.testing.assert_allclose(np.asarray(m32.col), np.asarray(m64.col), atol=1e-3)
+    np.testing.assert_allclose(np.asarray(m32.score), np.asarray(m64.score), atol=1e-4)

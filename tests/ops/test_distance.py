@@ -78,13 +78,32 @@ def test_cityblock_chessboard_vs_scipy_coins(coins_mask):
     assert c == 0 and q == 0
 
 
-def test_no_background_is_infinite():
-    m = np.ones((40, 48), bool)
+def test_no_background_measures_to_the_frame():
+    """No background pixel: the frame just outside the image is the background (finite; it was
+    +inf, which the chain fuzzer reported as NONFINITE). Ground truth: the distance to the nearest
+    image side plus one spacing, by hand; the null (+inf, the distance to an empty set) is what
+    any later stage would have received."""
+    m = np.ones((5, 8), bool)
+    want = np.array([[1, 1, 1, 1, 1, 1, 1, 1],
+                     [1, 2, 2, 2, 2, 2, 2, 1],
+                     [1, 2, 3, 3, 3, 3, 2, 1],
+                     [1, 2, 2, 2, 2, 2, 2, 1],
+                     [1, 1, 1, 1, 1, 1, 1, 1]], float)
     for metric in ("euclidean", "cityblock", "chessboard"):
         d = _dt(m, metric=metric)
-        assert np.all(np.isposinf(d)), metric
-    # scipy's convention differs there (distance to a virtual pixel / -1); documented
-    assert np.isfinite(ndi.distance_transform_edt(m)).all()
+        assert np.isfinite(d).all(), metric
+        np.testing.assert_array_equal(d, want, err_msg=metric)
+    # anisotropic sampling: rows 2 apart, columns 0.5 apart; pixel (2, 2) is 1.5 from the frame
+    d = _dt(m, sampling=(2.0, 0.5))
+    assert float(d[2, 2]) == 1.5 and float(d[0, 0]) == 0.5
+    # one background pixel switches back to the ordinary transform (no frame)
+    m1 = m.copy()
+    m1[2, 3] = False
+    d1 = _dt(m1)
+    assert float(d1[0, 0]) == float(np.hypot(2, 3)) and float(d1[2, 3]) == 0.0
+    np.testing.assert_allclose(d1, ndi.distance_transform_edt(m1), atol=1e-12)
+    # scipy's convention differs there (the distance to one virtual pixel at (-1, 0)); documented
+    assert not np.allclose(ndi.distance_transform_edt(m), want)
 
 
 def test_anisotropic_sampling_vs_scipy(coins_mask):

@@ -437,7 +437,8 @@ def _phase_core(a, b, *, upsample: int, window: str):
     nz = nz & jnp.asarray(band)
     R = jnp.where(nz, X / jnp.where(nz, mag, 1.0), 0.0)
     # peak height normalised by the phase-carrying bins: 1 for a pure circular shift
-    norm = (H * W) / jnp.maximum(jnp.sum(nz), 1)
+    # (in the image dtype: an integer count divided under x64 made the result float64)
+    norm = jnp.asarray(H * W, dt) / jnp.maximum(jnp.sum(nz), 1).astype(dt)
     r = jnp.real(jnp.fft.ifft2(R)) * norm
     idx = jnp.argmax(r)
     p, q = idx // W, idx % W
