@@ -128,3 +128,21 @@ def enable_compile_cache(path: str | os.PathLike | None = None, *, min_compile_t
     except Exception:  # pragma: no cover - private API moved; the config above still applies
         pass
     return d
+
+
+def near_map_limit() -> bool:
+    """True when this process holds more than half of the kernel's ``vm.max_map_count`` memory
+    mappings (Linux; False where it cannot tell). Every executable XLA:CPU compiles keeps a few
+    (about 3) until released; at the limit mmap fails inside the JIT linker ("Failed to
+    materialize symbols") and the process dies. A long-running caller (the test suite's workers,
+    the chain fuzzer) drops its compiled programs (``jax.clear_caches()``) when this says so."""
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            limit = int(f.read())
+    except (OSError, ValueError):
+        limit = 65530
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f) > limit // 2
+    except OSError:
+        return False

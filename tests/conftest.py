@@ -53,29 +53,12 @@ jax.config.update("jax_cpu_enable_async_dispatch", False)
 # fails inside the JIT linker and the worker dies ("Failed to materialize symbols",
 # SIGSEGV/SIGABRT in backend_compile). So when a worker passes half of the limit, the
 # compilation caches are dropped between tests (programs are recompiled on demand).
-def _map_limit() -> int:
-    try:
-        with open("/proc/sys/vm/max_map_count") as f:
-            return int(f.read())
-    except (OSError, ValueError):
-        return 65530
-
-
-_MAP_LIMIT = _map_limit()
-
-
-def _n_maps() -> int:
-    try:
-        with open("/proc/self/maps", "rb") as f:
-            return sum(1 for _ in f)
-    except OSError:
-        return 0
-
-
 @pytest.fixture(autouse=True)
 def _release_compiled_programs():
     yield
-    if _n_maps() > _MAP_LIMIT // 2:
+    from fsjax._cache import near_map_limit
+
+    if near_map_limit():
         jax.clear_caches()
         gc.collect()
 

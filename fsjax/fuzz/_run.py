@@ -268,7 +268,9 @@ class Runner:
         than half of the kernel's ``vm.max_map_count`` memory mappings: each XLA:CPU executable
         keeps a few, and at the limit the JIT linker fails ("Failed to materialize symbols") and
         the process dies. Programs are compiled again on demand. True when released."""
-        if _n_maps() <= _map_limit() // 2:
+        from .._cache import near_map_limit
+
+        if not near_map_limit():
             return False
         import gc
 
@@ -825,22 +827,6 @@ def _jit(f):
     import jax
 
     return jax.jit(f, compiler_options=STAGE_COMPILER_OPTIONS)
-
-
-def _map_limit() -> int:
-    try:
-        with open("/proc/sys/vm/max_map_count") as f:
-            return int(f.read())
-    except (OSError, ValueError):
-        return 65530
-
-
-def _n_maps() -> int:
-    try:
-        with open("/proc/self/maps", "rb") as f:
-            return sum(1 for _ in f)
-    except OSError:
-        return 0
 
 
 def _avals(tree) -> tuple:
