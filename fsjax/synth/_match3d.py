@@ -316,6 +316,15 @@ def _on_grid(x: Any, size: int, sigma: float, n: int = 20000) -> Volume:
 _GRID_MEMO: dict = {}
 
 
+def mesh_scene_at_template_density(scene: Any, tpl: Any, size: int) -> Volume:
+    """A mesh row's scene on the grid at the template's mass per unit area: ``MESH_SCENE_N`` samples
+    over the scene's mesh, weighted by ``(20,000 / template area) / (MESH_SCENE_N / scene area)``, so
+    the bunny's surface density is the template's (20,000 samples over the bunny alone); one sample
+    count for every seed (one compiled sampler)."""
+    w = (20000 / _mesh_area(tpl)) / (MESH_SCENE_N / _mesh_area(scene))
+    return Volume(_on_grid(scene, size, 1.0, n=MESH_SCENE_N).data * w)
+
+
 
 def timed_call(call, timing: bool):
     """``(result, first, second)``: ``call()``'s result, the wall time of its first call (trace +
@@ -370,11 +379,7 @@ def run_grid_cell(structure: str, method: str, *, seed: int = 0, with_object: bo
         kw["scale"] = 1.08
     scene, tpl, truth = match3d_scene(**kw)
     if structure == "mesh" and method in MESH_AREA_DENSITY:
-        # the scene's mesh sampled by MESH_SCENE_N samples and its grid weighted so that its mass per unit
-        # area is the template's (20,000 samples over the bunny alone): the bunny's surface density on the
-        # grid is the template's (one sample count for every seed: one compiled sampler)
-        w = (20000 / _mesh_area(tpl)) / (MESH_SCENE_N / _mesh_area(scene))
-        scene = Volume(_on_grid(scene, size, 1.0, n=MESH_SCENE_N).data * w)
+        scene = mesh_scene_at_template_density(scene, tpl, size)
         tpl = _on_grid(tpl, ts or size, 1.0)
     elif structure != "voxel":
         scene, tpl = _on_grid(scene, size, 1.0), _on_grid(tpl, ts or size, 1.0)
