@@ -93,6 +93,10 @@ SELECTION = [
     ("a template by its edges, whatever the contrast (gain, offset, reversal)", "shape_locate3d",
      "Steger's gradient-direction score by 3 FFT correlations, 0.03-0.16 voxel here; clutter shells score up to "
      "0.61 of 1, so a half-hidden object (0.62-0.67, placed within 1.1 voxel) is refused at the default min_score"),
+    ("a template by the kind of its surface bending (caps, ridges, saddles), whatever the gain and offset",
+     "shape_index_locate3d", "shape-index codes of the iso-surfaces (second derivatives) correlated by FFT, "
+     "0.03-0.25 voxel here; the bunny scores 0.86-0.96, the clutter alone at most 0.47; a contrast reversal "
+     "turns caps into cups (refused); noisier than gradient directions"),
     ("several instances, occlusion", "generalised_hough3d", "R-table votes, NMS over instances; 0.02-0.17 voxel; "
      "clutter gathers at most 0.17 of the votes, a half-hidden bunny 0.27-0.38 (found at the default 0.22: thin "
      "margins); a static vote capacity (overflow: valid=False, capacity_exceeded)"),
@@ -140,7 +144,17 @@ def main() -> None:
          "sphere/cube shells as clutter (none for `moments_pose3d`, which needs the object alone) and noise "
          "of 1 % of the peak on voxel scenes. Rows: the form of scene and template; points and meshes are "
          "brought onto the grid by `fsjax.ops.to_voxel` (mesh: 20,000 surface samples, independent of the "
-         "template's) and smoothed by `gaussian3d(sigma=1)`. Gaussians: one per two samples of the points "
+         "template's) and smoothed by `gaussian3d(sigma=1)`. The scaled scenes of `lm_translation_scale3d`: "
+         "voxels, the samples moved with their blur scaled and their density divided by 1.08^3; points, "
+         "20,000 x 1.08^2 samples (the template's samples per unit area); Gaussians, sigmas x 1.08 and mass "
+         "x 1.08^3 (the template's splat at x / 1.08); mesh, the vertices scaled. On the mesh row the "
+         "intensity-comparing cells (`phase_correlation3d`, `lm_translation_scale3d`, `lm_rotation_z3d`, and "
+         "`chamfer3d`, whose occupancy level is a fraction of the template's peak) bring "
+         "the scene's mesh to the template's mass per unit area (60,000 samples over bunny and clutter, "
+         "weighted; 20,000 over bunny and clutter leave the bunny at 0.29-0.38 of the template's density) and "
+         "`phase_correlation3d` there needs `min_score=0.2` (bunny 0.33-0.40, clutter alone 0.11-0.12). Points and "
+         "meshes are splatted and blurred alike in scene and template, so a scaled bunny's surface on the grid "
+         "is as thick as the template's: LM's scale is biased there (scale error up to 0.03). Gaussians: one per two samples of the points "
          "row (10,000 on the bunny, every second of the clutter's), flat along the surface (sigma 0.5 voxel "
          "in the tangent plane, 0.15 along the normal, opacity 0.5), splatted by "
          "`fsjax.ops.gaussians_to_volume` (footprint splat, EWA prefilter 0.6 voxel) and smoothed the same "
@@ -154,7 +168,9 @@ def main() -> None:
          "the template is the unturned bunny in a volume of the scene's size; `+lm_rotation_z3d` moves that pose "
          "onto the 24^3 template box and refines it (\"FM start\": the Fourier-Mellin error it starts from). "
          "`chamfer3d`: the scenes of the `ncc3d` column, occupancy at 0.3 of the template's peak. "
-         "`shape_locate3d` and `generalised_hough3d` (`fsjax/synth/_match3d_shape.py`): the scenes of the `ncc3d` "
+         "`shape_locate3d`, `generalised_hough3d` and `shape_index_locate3d` (curvature matching: the shape "
+         "index of each voxel's iso-surface, Koenderink & van Doorn; `fsjax/synth/_match3d_shape.py`, "
+         "tests/ops/test_match3d_curv.py): the scenes of the `ncc3d` "
          "column, defaults; the Hough column reports its best instance. "
          "Depth row (`fsjax/synth/_match3d_depth.py`, tests/ops/test_match3d_depth.py): the same kinds of scene as "
          "meshes (the bunny's mesh, icospheres and boxes as clutter) seen by ONE camera looking along +z from 300 "
@@ -205,9 +221,11 @@ def main() -> None:
     L += [f"| {a} | `{b}` | {c} |" for a, b, c in SELECTION]
     L += ["", "## Not yet (issue 17)", "",
           "Methods not yet: "
-          "curvature / shape-index matching, shape-based and generalised Hough matching with rotation "
-          "(`shape_locate3d` and `generalised_hough3d` are translation only), chamfer with rotation (`chamfer3d` is "
-          "translation only). Built outside this table (their "
+          "shape-based, generalised Hough and curvature matching with rotation "
+          "(`shape_locate3d`, `generalised_hough3d` and `shape_index_locate3d` are translation only), chamfer with "
+          "rotation (`chamfer3d` is translation only). The depth -> TSDF transform (`depth_to_tsdf`, signed distance "
+          "along the camera's rays; tests/ops/test_match3d_tsdf.py) exists but no cell uses it yet (the depth "
+          "row goes depth -> points -> `to_voxel`). Built outside this table (their "
           "own scenes and tests): parametric Hough for planes and spheres (`hough_planes3d`, `hough_spheres3d`, "
           "tests/ops/test_hough3d.py), the spherical-harmonic descriptor and Harris-3D "
           "(tests/ops/test_match3d_desc.py), spin images / SHOT / FPFH + RANSAC (+ ICP) and cross-structure "

@@ -37,6 +37,7 @@ from .image._skeleton import *  # noqa: F403
 from .image._threshold import *  # noqa: F403
 from .image._threshold_local import *  # noqa: F403
 from .match3d._chamfer3d import *  # noqa: F403
+from .match3d._depth_tsdf import *  # noqa: F403
 from .match3d._fft3d import *  # noqa: F403
 from .match3d._fmellin3d import *  # noqa: F403
 from .match3d._gaussvox import *  # noqa: F403
@@ -46,6 +47,7 @@ from .match3d._pose3d import *  # noqa: F403
 from .match3d._pyramid3d import *  # noqa: F403
 from .match3d._refine3d import *  # noqa: F403
 from .match3d._shape3d import *  # noqa: F403
+from .match3d._shapeindex3d import *  # noqa: F403
 from .match3d._shdesc import *  # noqa: F403
 from .match3d._transforms import *  # noqa: F403
 from .matching._correlation import *  # noqa: F403

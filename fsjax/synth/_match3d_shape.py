@@ -1,7 +1,8 @@
 """The gradient-direction columns of the 3-D matching grid (beside :data:`fsjax.synth.MATCH3D_METHODS`,
 same scenes and conventions as :func:`fsjax.synth.run_grid_cell`): shape-based matching
-(:func:`fsjax.ops.shape_locate3d`) and the generalised Hough transform
-(:func:`fsjax.ops.generalised_hough3d`).
+(:func:`fsjax.ops.shape_locate3d`), the generalised Hough transform
+(:func:`fsjax.ops.generalised_hough3d`) and curvature matching on the shape index
+(:func:`fsjax.ops.shape_index_locate3d`, the second derivatives).
 
 Both columns run on the scenes of the ``ncc3d`` cell (same seeds: the bunny moved by +-5 voxels
 among six clutter shells, 1 % noise on voxel scenes, a 24^3 template), each row brought onto the
@@ -21,10 +22,11 @@ from ._match3d import _on_grid, com_null, match3d_scene, timed_call
 
 __all__ = ["MATCH3D_SHAPE_METHODS", "MATCH3D_SHAPE_NOT_YET", "MATCH3D_SHAPE_CELL_TOL", "run_shape_cell"]
 
-MATCH3D_SHAPE_METHODS = ("shape_locate3d", "generalised_hough3d")
+MATCH3D_SHAPE_METHODS = ("shape_locate3d", "generalised_hough3d", "shape_index_locate3d")
 
+# the depth row's cells of these columns are built in fsjax/synth/_match3d_depth.py (run_depth_cell)
 MATCH3D_SHAPE_NOT_YET = {
-    ("depth", m): "not yet: depth -> points exists (depth_to_points), the partial-view scene is not built"
+    ("depth", m): "the depth row: fsjax/synth/_match3d_depth.py (run_depth_cell, tests/ops/test_match3d_depth.py)"
     for m in MATCH3D_SHAPE_METHODS
 }
 
@@ -34,6 +36,9 @@ MATCH3D_SHAPE_CELL_TOL = {  # measured max over seeds 0-2 in the comments
     ("points", "shape_locate3d"): 0.2, ("points", "generalised_hough3d"): 0.25,  # 0.118, 0.167
     ("mesh", "shape_locate3d"): 0.1, ("mesh", "generalised_hough3d"): 0.12,  # 0.048, 0.069
     ("gaussians", "shape_locate3d"): 0.25, ("gaussians", "generalised_hough3d"): 0.15,  # 0.161, 0.093
+    # curvature matching (fsjax.ops.shape_index_locate3d), the same scenes
+    ("voxel", "shape_index_locate3d"): 0.15, ("points", "shape_index_locate3d"): 0.3,  # 0.073, 0.161
+    ("mesh", "shape_index_locate3d"): 0.25, ("gaussians", "shape_index_locate3d"): 0.4,  # 0.147, 0.250
 }
 
 _SCENES: dict = {}

@@ -18,6 +18,7 @@ from fsjax.synth import (
     MATCH3D_STRUCTURES,
     run_grid_cell,
 )
+from fsjax.synth._match3d import MATCH3D_SCALE_TOL
 from fsjax.types import reason_code
 
 ops = fsjax.ops
@@ -198,7 +199,15 @@ def test_grid_cells_are_all_accounted_for():
     assert set(CELLS) == set(MATCH3D_CELL_TOL)
 
 
-@pytest.mark.parametrize("structure,method", CELLS, ids=[f"{s}-{m}" for s, m in CELLS])
+# cells that cost 7-13 s each here beyond what the other cells compile (a 60,000-sample mesh sampler and
+# 48^3 mesh templates; new points / Gaussian splat sizes; LM runs of 0.5-0.9 s, twice): marked slow (still run
+# in CI, last)
+SLOW = {("mesh", "phase_correlation3d"), ("points", "lm_rotation_z3d"), ("mesh", "lm_rotation_z3d"),
+        ("points", "lm_translation_scale3d"), ("mesh", "lm_translation_scale3d"), ("gaussians", "lm_translation_scale3d")}
+
+
+@pytest.mark.parametrize("structure,method", [pytest.param(s, m, marks=pytest.mark.slow) if (s, m) in SLOW else (s, m)
+                                              for s, m in CELLS], ids=[f"{s}-{m}" for s, m in CELLS])
 def test_grid_cell(structure, method):
     """The template found at its known pose within the cell's tolerance, better than the null,
     and the same scene without the object gives valid=False."""
@@ -210,7 +219,7 @@ def test_grid_cell(structure, method):
     assert r["valid"], r["reason"]
     assert r["error"] <= tol and r["error"] < r["null"]
     if "scale_error" in r:
-        assert r["scale_error"] < 0.02
+        assert r["scale_error"] < MATCH3D_SCALE_TOL[structure]
     r0 = run_grid_cell(structure, method, with_object=False)
     assert not r0["valid"] and ("not found" in r0["reason"] or "invalid input" in r0["reason"])
 
