@@ -40,8 +40,10 @@ sense of Teschner et al. 2003 and Green 2010, with an exactness certificate):
    (sparse regions, queries far from the cloud, fewer than ``k`` points
    nearby) are searched again in the 5 x 5 x 5 block, then (an index built
    with ``coarse=True``) in the blocks of two coarser grids, and the rest by
-   a blocked brute-force scan over all reference points, in ``while_loop`` s
-   over batches whose cost follows the number of such queries.
+   a scan over all reference points, in ``while_loop`` s over batches whose cost
+   follows the number of such queries. These fallback passes are one looped body
+   (a ``fori_loop`` over the pass index, the grid levels stacked, the ring size
+   traced), compiled once rather than once per pass.
    For radius search the block always contains the ball, so no fallback is
    needed.
 
@@ -571,7 +573,9 @@ def _knn_cell_size(ref, valid, k):
     kk = min(max(k, 2), 8, n)
     pick = jnp.asarray(np.linspace(0, n - 1, s).round().astype(np.int32))
     r32 = ref.astype(jnp.float32)  # an estimate: float32 is enough (float64 scans measured 60x slower)
-    d2, _, _ = _brute_queries(_brute_refs(r32, valid), r32[pick], kk)
+    # the 16 x N distances at once (O(N) memory) and one top_k: cheaper to compile than a blocked scan
+    d2 = jnp.where(valid[None, :], _sqdist(r32[pick][:, None, :], r32[None, :, :]), jnp.inf)
+    d2 = -lax.top_k(-d2, kk)[0]
     dk = jnp.sqrt(d2[:, -1]).astype(ref.dtype) * (math.sqrt(k / kk) if k > 1 else 1.0)
     ok = valid[pick] & jnp.isfinite(dk) & (dk > 0)
     med = jnp.nanmedian(jnp.where(ok, dk, jnp.nan))
@@ -592,6 +596,7 @@ def _fixed_slots(k: int) -> int:
     k = 32 mean 177 / 202, 99th percentile 313 / 300."""
     return int(16 * math.ceil((9 * k + 32) / 16))
 _B2 = 32  # queries per batch in the fallback passes
+_ONE_GROUP = True  # every pass in one group (narrow batches); False: the fine passes apart, wide (a probe knob)
 _LOOP = True  # the fallback chain as one looped body (False: each pass its own copy; a probe knob)
 
 
@@ -654,11 +659,11 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
 
         C1 = _fixed_slots(k)
         d2, idx, cert, over = _batched(lambda q: fixed_pass(q, C1), (qry,), min(_B1, qry.shape[0]))
-        if not _LOOP:  # the few queries whose block holds more than C1 points: the same pass with 4 C1 slots
-            d2, idx, cert = _redo(~done(d2, cert) & over, _B1 // 8,
-                                  lambda sel: fixed_pass(qry[sel], 4 * C1)[:3], (d2, idx, cert))
-        # (looped: they go to the 125-cell block, which holds the 27-cell one and certifies whatever
-        # the 27-cell block would)
+        # the queries whose block holds more than C1 points: the same pass with 4 C1 slots (few on
+        # an index sized for k; most when a k = 1 query meets an index sized for k = 10, as in ICP:
+        # sending them to the 125-cell pass instead made ICP at 20,000 points 2x slower)
+        d2, idx, cert = _redo(~done(d2, cert) & over, _B1 // 8, lambda sel: fixed_pass(qry[sel], 4 * C1)[:3],
+                              (d2, idx, cert))
     else:
         d2, idx, cert = _in_cell_order(g, qry, lambda q: ring_pass(g, q, 1, S), min(_B1, qry.shape[0]))
     if _LOOP:
@@ -694,16 +699,20 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
 
 
 def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S):
-    """The fallback chain of :func:`_query_grid_knn` after its first pass, as ONE looped body.
+    """The fallback chain of :func:`_query_grid_knn` after its first pass, as two looped bodies.
 
     The passes, in order: the fine 5 x 5 x 5 block; (approximate mode) the representatives'
     3 x 3 x 3 block; the 4x level's 3 x 3 x 3 and 5 x 5 x 5 blocks; the 16x level's 3 x 3 x 3
     block; a scan of every indexed point (the brute force: one run, the whole sorted array). A
     ``fori_loop`` over the pass index runs each pass on the queries not answered yet (a
-    ``while_loop`` over them, ``_B2`` at a time, as :func:`_redo`); the pass selects its level's
-    arrays (the grids of one index have equal shapes: stacked) and its ring size by index, and
-    scans ``8 S`` candidates per step. The scan and the selection are compiled once for every
-    pass: unrolled, each pass was its own copy (~0.5-1 s of compile each, ``benchmarks/compile_knn.py``).
+    ``while_loop`` over them, as :func:`_redo`); the pass selects its level's arrays (the grids
+    of one index have equal shapes: stacked) and its ring size by index. The scan and the
+    selection are compiled once per group of passes, not once per pass (unrolled, each pass
+    was its own copy: ~0.5-1 s of compile each, ``benchmarks/compile_knn.py``). Two groups,
+    because the batch is static: the fine-level passes, which many queries reach (ICP's first
+    iterations: most), in wide batches of few slots; the coarse and whole-array passes, which
+    few queries reach but with many candidates each, in batches of ``_B2`` queries and ``8 S``
+    slots (one group at ``_B2`` made ICP at 20,000 points 2-3x slower).
 
     Exactness as unrolled: a pass certifies a query when its k-th distance lies strictly inside
     the pass's block (64 ulp margin); the whole-array scan certifies every query it answers,
@@ -711,52 +720,62 @@ def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S):
     are set missing and scanned again by exact arg-min passes after the loop.
     """
     eps = jnp.finfo(qry.dtype).eps
-    levels, passes = [g], []  # passes: (level, ring, representatives?, whole array?)
-    passes.append((0, 2, False, False))
-    if approx is not None and g.reps is not None:
-        levels.append(g.reps)
-        passes.append((len(levels) - 1, 1, True, False))
-    if g.coarse is not None:
-        levels.append(g.coarse)
-        passes += [(len(levels) - 1, r, False, False) for r, name in ((1, "c4r1"), (2, "c4r2")) if name in _CHAIN]
-        if g.coarse.coarse is not None and "c16r1" in _CHAIN:
-            levels.append(g.coarse.coarse)
-            passes.append((len(levels) - 1, 1, False, False))
-    passes.append((0, 1, False, True))
-    lo, h, dims, spts, order, cstart = (jnp.stack([getattr(lv, f) for lv in levels])
-                                         for f in ("lo", "h", "dims", "spts", "order", "cstart"))
-    lev, ring, rep, whole = (jnp.asarray([p[i] for p in passes]) for i in range(4))
-    rmax = 2
-    n_valid = g.cstart[-1]
-    Sl = 8 * S
-    ref, valid = g.ref, g.valid
     use_approx = jnp.bool_(False) if approx is None else approx
+    n_valid = g.cstart[-1]
 
     def done(d2, cert):
         return cert | (use_approx & jnp.isfinite(d2[:, -1]))
 
-    def body(i, outs):
-        li = lev[i]
-        gl = GridIndex(ref, valid, lo[li], h[li], dims[li], None, spts[li], order[li], cstart=cstart[li])
-        wh = whole[i]
+    def run(levels, passes, B, Sl, outs):  # passes: (level, ring, representatives?, whole array?)
+        lo, h, dims, spts, order, cstart = (jnp.stack([getattr(lv, f) for lv in levels])
+                                             for f in ("lo", "h", "dims", "spts", "order", "cstart"))
+        lev, ring, rep, whole = (jnp.asarray([p[i] for p in passes]) for i in range(4))
+        rmax = max(p[1] for p in passes)
 
-        def one(sel):
-            q = qry[sel]
-            start, length, bound = gl.runs(q, ring[i], rmax)
-            col0 = jnp.arange(start.shape[1]) == 0
-            start = jnp.where(wh, jnp.where(col0, 0, start), start)
-            length = jnp.where(wh, jnp.where(col0, n_valid, 0), length)
-            d2, pos, _, ok = _scan_cells(gl.spts, q, start, length, k, Sl)
-            b = jnp.maximum(bound, 0.0)
-            cert = ok & ((d2[:, -1] < (b * b) * (1 - 64 * eps)) | gated(b))
-            cert = jnp.where(wh, ok, cert & ~rep[i])
-            d2 = jnp.where(wh & ~ok[:, None], jnp.inf, d2)  # ambiguous float64 rows: re-done exactly below
-            return d2, jnp.where(jnp.isfinite(d2), gl.order[pos], -1), cert
+        def body(i, outs):
+            li = lev[i]
+            gl = GridIndex(g.ref, g.valid, lo[li], h[li], dims[li], None, spts[li], order[li], cstart=cstart[li])
+            wh = whole[i]
 
-        todo = ~done(outs[0], outs[2]) & (use_approx | ~rep[i])
-        return _redo(todo, _B2, one, outs)
+            def one(sel):
+                q = qry[sel]
+                start, length, bound = gl.runs(q, ring[i], rmax)
+                col0 = jnp.arange(start.shape[1]) == 0
+                start = jnp.where(wh, jnp.where(col0, 0, start), start)
+                length = jnp.where(wh, jnp.where(col0, n_valid, 0), length)
+                d2, pos, _, ok = _scan_cells(gl.spts, q, start, length, k, Sl)
+                b = jnp.maximum(bound, 0.0)
+                cert = ok & ((d2[:, -1] < (b * b) * (1 - 64 * eps)) | gated(b))
+                cert = jnp.where(wh, ok, cert & ~rep[i])
+                d2 = jnp.where(wh & ~ok[:, None], jnp.inf, d2)  # ambiguous float64 rows: re-done exactly below
+                return d2, jnp.where(jnp.isfinite(d2), gl.order[pos], -1), cert
 
-    d2, idx, cert = lax.fori_loop(0, len(passes), body, tuple(outs))
+            todo = ~done(outs[0], outs[2]) & (use_approx | ~rep[i])
+            return _redo(todo, B, one, outs)
+
+        return lax.fori_loop(0, len(passes), body, tuple(outs))
+
+    # the fine level: wide batches (smaller in float64, whose loop passes measured ~10x slower
+    # than float32's in XLA:CPU)
+    fine, fine_passes = [g], [(0, 2, False, False)]
+    if approx is not None and g.reps is not None:
+        fine.append(g.reps)
+        fine_passes.append((1, 1, True, False))
+    b2 = _B1 // 2 if qry.dtype == jnp.float32 else _B1 // 8
+    if not _ONE_GROUP:
+        outs = run(fine, fine_passes, min(b2, qry.shape[0]), 2 * S, outs)
+        fine, fine_passes = [g], []
+    # the coarse levels and the whole array: narrow batches, many slots
+    coarse, coarse_passes = fine, fine_passes
+    if g.coarse is not None:
+        coarse.append(g.coarse)
+        coarse_passes += [(len(coarse) - 1, r, False, False) for r, name in ((1, "c4r1"), (2, "c4r2"))
+                          if name in _CHAIN]
+        if g.coarse.coarse is not None and "c16r1" in _CHAIN:
+            coarse.append(g.coarse.coarse)
+            coarse_passes.append((len(coarse) - 1, 1, False, False))
+    coarse_passes.append((0, 1, False, True))
+    d2, idx, cert = run(coarse, coarse_passes, _B2, 8 * S, outs)
     if qry.dtype != jnp.float32 and k > 1:  # ambiguous float64 rows of the whole-array scan
         refs = _brute_refs(g.ref, g.valid)
         d2, idx, cert = _redo(~done(d2, cert), 8, lambda sel: _brute_queries(refs, qry[sel], k, _exact=True)[:2]
