@@ -2,7 +2,7 @@
 
 Each workload is ``jax.jit(f).trace(...).lower().compile()`` with process CPU seconds around the
 compile (the machine is shared: CPU seconds, not wall), then the median of 3 runs of the compiled
-program (wall). The load average is printed per line.
+program (wall, and process CPU: the steadier figure on a shared machine). The load average is printed per line.
 
     python benchmarks/compile_knn.py [--only knn10_20k,icp_p2plane_20k,...] [--x64]
 
@@ -88,13 +88,15 @@ def main():
         comp = lo.compile()
         c2 = time.process_time()
         jax.block_until_ready(comp(*args))
-        ts = []
+        ts, cs = [], []
         for _ in range(a.runs):
-            t0 = time.perf_counter()
+            t0, u0 = time.perf_counter(), time.process_time()
             jax.block_until_ready(comp(*args))
             ts.append(time.perf_counter() - t0)
+            cs.append(time.process_time() - u0)
         print(f"{name:24s} trace+lower {c1 - c0:6.2f}s cpu  compile {c2 - c1:6.2f}s cpu  "
-              f"run {np.median(ts) * 1e3:9.1f} ms  load {l0:.1f}->{os.getloadavg()[0]:.1f}", flush=True)
+              f"run {np.median(ts) * 1e3:9.1f} ms wall {np.median(cs) * 1e3:9.1f} ms cpu  "
+              f"load {l0:.1f}->{os.getloadavg()[0]:.1f}", flush=True)
 
 
 if __name__ == "__main__":

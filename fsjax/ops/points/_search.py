@@ -596,7 +596,7 @@ def _fixed_slots(k: int) -> int:
     k = 32 mean 177 / 202, 99th percentile 313 / 300."""
     return int(16 * math.ceil((9 * k + 32) / 16))
 _B2 = 32  # queries per batch in the fallback passes
-_ONE_GROUP = True  # every pass in one group (narrow batches); False: the fine passes apart, wide (a probe knob)
+_ONE_GROUP = False  # True: every pass in one group, narrow batches (compile -25 %, run +10-25 %; a probe knob)
 _LOOP = True  # the fallback chain as one looped body (False: each pass its own copy; a probe knob)
 
 
@@ -712,7 +712,8 @@ def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S):
     because the batch is static: the fine-level passes, which many queries reach (ICP's first
     iterations: most), in wide batches of few slots; the coarse and whole-array passes, which
     few queries reach but with many candidates each, in batches of ``_B2`` queries and ``8 S``
-    slots (one group at ``_B2`` made ICP at 20,000 points 2-3x slower).
+    slots. (One group at ``_B2`` (``_ONE_GROUP``) compiles ~25 % faster again but made k = 1
+    approximate queries at 20,000 points 10-25 % slower, float32 and float64.)
 
     Exactness as unrolled: a pass certifies a query when its k-th distance lies strictly inside
     the pass's block (64 ulp margin); the whole-array scan certifies every query it answers,
