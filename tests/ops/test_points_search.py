@@ -440,3 +440,39 @@ def test_query_knn_max_dist_gate():
         assert np.array_equal(np.asarray(gi)[inside], np.asarray(idx)[inside])
         assert np.all(np.asarray(gi)[~inside] == -1) and np.all(np.isinf(np.asarray(gd)[~inside]))
     assert inside[:500].mean() > 0.9 and not inside[500:].all()  # both kinds of query occur
+
+
+def test_index_chain_every_pass_exact_on_a_lattice_float64():
+    """The fallback chain (one looped body over its passes: fine 125-cell block, 4x / 16x levels,
+    whole-array scan) is exact for queries that each pass answers: a float64 lattice (distances
+    that tie, also in float32) and queries 0, 3, 12, 50 and 400 cells from it."""
+    from fsjax.ops.points._search import build_index, query_knn
+
+    g = np.stack(np.meshgrid(*[np.arange(12) * 0.1] * 3, indexing="ij"), -1).reshape(-1, 3)
+    rng = np.random.default_rng(5)
+    ix = jax.jit(lambda r: build_index(r, k=8, coarse=True))(jnp.asarray(g))
+    h = float(ix.h)
+    offs = (0.0, 3 * h, 12 * h, 50 * h, 400 * h)
+    q = np.concatenate([g[rng.choice(len(g), 24)] + np.array([1.1, 0.0, 0.0]) * (d > 0) + np.array([d, 0.0, 0.0])
+                        for d in offs])
+    q[:12] = g[:12]  # exact lattice points: distances tie
+    idx, d2 = jax.jit(lambda ix, q: query_knn(ix, q, 8))(ix, jnp.asarray(q))
+    assert _check_knn(g, q, 8, idx, d2) == len(q)
+    # the null of "every pass is reached": the far groups' nearest point lies beyond the blocks before
+    near = np.sqrt(np.asarray(d2)[:, 0]).reshape(len(offs), -1).min(axis=1) / h
+    assert near[1] > 2 and near[2] > 10 and near[3] > 45 and near[4] > 390
+
+
+def test_knn_cell_size_for_k1_is_the_nearest_other_point():
+    """k = 1: the cell side is 1.5 x the median distance of 16 strided points to their nearest OTHER
+    point (the first neighbour of a reference point is itself, at 0: it gave no estimate and a grid
+    of one cell, 7 s for 20,000 x 20,000 points)."""
+    from fsjax.data import surface_points
+    from fsjax.ops.points._search import _knn_cell_size
+
+    ref = surface_points("bunny", 2000, 0).astype(np.float32)
+    pick = np.linspace(0, len(ref) - 1, 16).round().astype(int)
+    d, _ = cKDTree(ref).query(ref[pick], 2)
+    h = float(_knn_cell_size(jnp.asarray(ref), jnp.ones(len(ref), bool), 1))
+    np.testing.assert_allclose(h, 1.5 * np.median(d[:, 1]), rtol=1e-5)
+    assert h > 0

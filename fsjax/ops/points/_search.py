@@ -40,8 +40,10 @@ sense of Teschner et al. 2003 and Green 2010, with an exactness certificate):
    (sparse regions, queries far from the cloud, fewer than ``k`` points
    nearby) are searched again in the 5 x 5 x 5 block, then (an index built
    with ``coarse=True``) in the blocks of two coarser grids, and the rest by
-   a blocked brute-force scan over all reference points, in ``while_loop`` s
-   over batches whose cost follows the number of such queries.
+   a scan over all reference points, in ``while_loop`` s over batches whose cost
+   follows the number of such queries. These fallback passes are one looped body
+   (a ``fori_loop`` over the pass index, the grid levels stacked, the ring size
+   traced), compiled once rather than once per pass.
    For radius search the block always contains the ball, so no fallback is
    needed.
 
@@ -438,28 +440,32 @@ class GridIndex(NamedTuple):
     def key_of(self, x):
         return _cell_key(x, self.lo, self.h, self.dims)
 
-    def runs(self, q, ring):
+    def runs(self, q, ring, rmax=None):
         """Sorted runs of the ``(2 ring + 1)^3`` block around each query ``q`` (M, 3).
 
-        Returns ``start``, ``length`` ``(M, (2 ring + 1)^2)`` (one run per (z, y) row of
+        Returns ``start``, ``length`` ``(M, (2 rmax + 1)^2)`` (one run per (z, y) row of
         the block, the query's own row first) and ``bound`` ``(M,)``, the distance from
-        the query to the block's faces: no point outside the block is closer.
+        the query to the block's faces: no point outside the block is closer. ``ring`` may be
+        traced when the static ``rmax >= ring`` is given: the rows beyond ``ring`` are empty runs
+        (one program for several ring sizes, see :func:`_query_grid_knn`).
         """
         lo, h, dims = self.lo, self.h, self.dims
+        rmax = ring if rmax is None else rmax
         u = (q - lo) / h
         # far queries are clipped: their block is empty and no point is within ring * h
         c = jnp.clip(jnp.floor(u), -(ring + 1), (dims + ring).astype(u.dtype)).astype(jnp.int32)
         face = jnp.minimum(u - (c - ring).astype(u.dtype), (c + ring + 1).astype(u.dtype) - u)
         bound = jnp.min(face, axis=-1) * h
-        offs = sorted(((dz, dy) for dz in range(-ring, ring + 1) for dy in range(-ring, ring + 1)),
+        offs = sorted(((dz, dy) for dz in range(-rmax, rmax + 1) for dy in range(-rmax, rmax + 1)),
                       key=lambda t: abs(t[0]) + abs(t[1]))
         dz = jnp.asarray([o[0] for o in offs], jnp.int32)
         dy = jnp.asarray([o[1] for o in offs], jnp.int32)
+        inside = jnp.maximum(jnp.abs(dz), jnp.abs(dy))[None] <= ring
         z = c[:, 2:3] + dz[None]
         y = c[:, 1:2] + dy[None]
         x0 = jnp.maximum(c[:, 0:1] - ring, 0)
         x1 = jnp.minimum(c[:, 0:1] + ring, dims[0] - 1)
-        ok = (z >= 0) & (z < dims[2]) & (y >= 0) & (y < dims[1]) & (x0 <= x1)
+        ok = (z >= 0) & (z < dims[2]) & (y >= 0) & (y < dims[1]) & (x0 <= x1) & inside
         row = (jnp.clip(z, 0, dims[2] - 1) * dims[1] + jnp.clip(y, 0, dims[1] - 1)) * dims[0]
         # the cells of a row are consecutive keys: the run is [cstart[first cell], cstart[last cell + 1])
         top = self.cstart.shape[0] - 1
@@ -557,15 +563,20 @@ def _knn_cell_size(ref, valid, k):
     """Cell side for kNN: 1.5 x the median k-th neighbour distance of 16 strided points.
 
     The distance is measured by brute force for ``k' = min(k, 8)`` and scaled by
-    ``sqrt(k / k')`` (points on a surface). Only speed depends on this estimate.
+    ``sqrt(k / k')`` (points on a surface). The sample points are among the references, so the
+    first neighbour found is the point itself; for ``k = 1`` the second (the nearest other
+    point) is used instead (the first, at distance 0, gave no estimate and a grid of one cell:
+    7 s for 20,000 x 20,000 points instead of ~0.05 s). Only speed depends on this estimate.
     """
     n = ref.shape[0]
     s = min(16, n)
-    kk = min(k, 8, n)
+    kk = min(max(k, 2), 8, n)
     pick = jnp.asarray(np.linspace(0, n - 1, s).round().astype(np.int32))
     r32 = ref.astype(jnp.float32)  # an estimate: float32 is enough (float64 scans measured 60x slower)
-    d2, _, _ = _brute_queries(_brute_refs(r32, valid), r32[pick], kk)
-    dk = jnp.sqrt(d2[:, -1]).astype(ref.dtype) * math.sqrt(k / kk)
+    # the 16 x N distances at once (O(N) memory) and one top_k: cheaper to compile than a blocked scan
+    d2 = jnp.where(valid[None, :], _sqdist(r32[pick][:, None, :], r32[None, :, :]), jnp.inf)
+    d2 = -lax.top_k(-d2, kk)[0]
+    dk = jnp.sqrt(d2[:, -1]).astype(ref.dtype) * (math.sqrt(k / kk) if k > 1 else 1.0)
     ok = valid[pick] & jnp.isfinite(dk) & (dk > 0)
     med = jnp.nanmedian(jnp.where(ok, dk, jnp.nan))
     return jnp.where(jnp.isfinite(med), 1.5 * med, 0.0)
@@ -585,6 +596,8 @@ def _fixed_slots(k: int) -> int:
     k = 32 mean 177 / 202, 99th percentile 313 / 300."""
     return int(16 * math.ceil((9 * k + 32) / 16))
 _B2 = 32  # queries per batch in the fallback passes
+_ONE_GROUP = False  # True: every pass in one group, narrow batches (compile -25 %, run +10-25 %; a probe knob)
+_LOOP = True  # the fallback chain as one looped body (False: each pass its own copy; a probe knob)
 
 
 def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
@@ -604,8 +617,8 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
     def gated(b):  # with a gate: every point within it lies inside a block reaching past it
         return jnp.zeros(b.shape, bool) if gate2 is None else (b * b) * (1 - 64 * eps) >= gate2
 
-    def ring_pass(grid, q, ring, S):
-        start, length, bound = grid.runs(q, ring)
+    def ring_pass(grid, q, ring, S, rmax=None):
+        start, length, bound = grid.runs(q, ring, rmax)
         d2, pos, _, ok = _scan_cells(grid.spts, q, start, length, k, S)
         b = jnp.maximum(bound, 0.0)
         # certificate: the k-th distance is strictly inside the searched block
@@ -646,36 +659,129 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
 
         C1 = _fixed_slots(k)
         d2, idx, cert, over = _batched(lambda q: fixed_pass(q, C1), (qry,), min(_B1, qry.shape[0]))
-        # the few queries whose block holds more than C1 points: the same pass with 4 C1 slots
+        # the queries whose block holds more than C1 points: the same pass with 4 C1 slots (few on
+        # an index sized for k; most when a k = 1 query meets an index sized for k = 10, as in ICP:
+        # sending them to the 125-cell pass instead made ICP at 20,000 points 2x slower)
         d2, idx, cert = _redo(~done(d2, cert) & over, _B1 // 8, lambda sel: fixed_pass(qry[sel], 4 * C1)[:3],
                               (d2, idx, cert))
     else:
         d2, idx, cert = _in_cell_order(g, qry, lambda q: ring_pass(g, q, 1, S), min(_B1, qry.shape[0]))
-    # not answered: the 5 x 5 x 5 block of the same grid
-    # (smaller batches in float64, whose loop passes measured ~10x slower than float32's in XLA:CPU)
-    b2 = _B1 // 2 if qry.dtype == jnp.float32 else _B1 // 8
-    d2, idx, cert = _redo(~done(d2, cert), b2, lambda sel: ring_pass(g, qry[sel], 2, 2 * S), (d2, idx, cert))
-    if approx is not None and g.reps is not None:
-        def rep_pass(sel):
-            d2r, idr, _ = ring_pass(g.reps, qry[sel], 1, 32)
-            return d2r, idr, jnp.zeros(sel.shape, bool)
-        d2, idx, cert = _redo(approx & ~done(d2, cert), _B1, rep_pass, (d2, idx, cert))
-    if g.coarse is not None and "c4r1" in _CHAIN:  # the 3 x 3 x 3 block of the coarse grid (cells 4x larger)
-        gc = g.coarse
-        d2, idx, cert = _redo(~done(d2, cert), _B2, lambda sel: ring_pass(gc, qry[sel], 1, 4 * S), (d2, idx, cert))
-        if "c4r2" in _CHAIN:
-            d2, idx, cert = _redo(~done(d2, cert), _B2, lambda sel: ring_pass(gc, qry[sel], 2, 8 * S), (d2, idx, cert))
-        if gc.coarse is not None and "c16r1" in _CHAIN:  # a third level, cells 16x the finest
-            gcc = gc.coarse
-            d2, idx, cert = _redo(~done(d2, cert), _B2, lambda sel: ring_pass(gcc, qry[sel], 1, 8 * S),
+    if _LOOP:
+        d2, idx, cert = _chain_loop(g, qry, k, (d2, idx, cert), approx, gated, S)
+    else:
+        # not answered: the 5 x 5 x 5 block of the same grid
+        # (smaller batches in float64, whose loop passes measured ~10x slower than float32's in XLA:CPU)
+        b2 = _B1 // 2 if qry.dtype == jnp.float32 else _B1 // 8
+        d2, idx, cert = _redo(~done(d2, cert), b2, lambda sel: ring_pass(g, qry[sel], 2, 2 * S), (d2, idx, cert))
+        if approx is not None and g.reps is not None:
+            def rep_pass(sel):
+                d2r, idr, _ = ring_pass(g.reps, qry[sel], 1, 32)
+                return d2r, idr, jnp.zeros(sel.shape, bool)
+            d2, idx, cert = _redo(approx & ~done(d2, cert), _B1, rep_pass, (d2, idx, cert))
+        if g.coarse is not None and "c4r1" in _CHAIN:  # the 3 x 3 x 3 block of the coarse grid (cells 4x larger)
+            gc = g.coarse
+            d2, idx, cert = _redo(~done(d2, cert), _B2, lambda sel: ring_pass(gc, qry[sel], 1, 4 * S),
                                   (d2, idx, cert))
-    # still not answered (far from the cloud, or fewer than k points nearby): a brute-force scan
-    refs = _brute_refs(g.ref, g.valid)
-    d2, idx = _redo(~done(d2, cert), _B2, lambda sel: _brute_queries(refs, qry[sel], k)[:2], (d2, idx))
+            if "c4r2" in _CHAIN:
+                d2, idx, cert = _redo(~done(d2, cert), _B2, lambda sel: ring_pass(gc, qry[sel], 2, 8 * S),
+                                      (d2, idx, cert))
+            if gc.coarse is not None and "c16r1" in _CHAIN:  # a third level, cells 16x the finest
+                gcc = gc.coarse
+                d2, idx, cert = _redo(~done(d2, cert), _B2, lambda sel: ring_pass(gcc, qry[sel], 1, 8 * S),
+                                      (d2, idx, cert))
+        # still not answered (far from the cloud, or fewer than k points nearby): a brute-force scan
+        refs = _brute_refs(g.ref, g.valid)
+        d2, idx = _redo(~done(d2, cert), _B2, lambda sel: _brute_queries(refs, qry[sel], k)[:2], (d2, idx))
     if gate2 is not None:  # beyond the gate: not searched exactly, reported missing
         far = d2 > gate2
         d2, idx = jnp.where(far, jnp.inf, d2), jnp.where(far, -1, idx)
     return idx, d2
+
+
+def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S):
+    """The fallback chain of :func:`_query_grid_knn` after its first pass, as two looped bodies.
+
+    The passes, in order: the fine 5 x 5 x 5 block; (approximate mode) the representatives'
+    3 x 3 x 3 block; the 4x level's 3 x 3 x 3 and 5 x 5 x 5 blocks; the 16x level's 3 x 3 x 3
+    block; a scan of every indexed point (the brute force: one run, the whole sorted array). A
+    ``fori_loop`` over the pass index runs each pass on the queries not answered yet (a
+    ``while_loop`` over them, as :func:`_redo`); the pass selects its level's arrays (the grids
+    of one index have equal shapes: stacked) and its ring size by index. The scan and the
+    selection are compiled once per group of passes, not once per pass (unrolled, each pass
+    was its own copy: ~0.5-1 s of compile each, ``benchmarks/compile_knn.py``). Two groups,
+    because the batch is static: the fine-level passes, which many queries reach (ICP's first
+    iterations: most), in wide batches of few slots; the coarse and whole-array passes, which
+    few queries reach but with many candidates each, in batches of ``_B2`` queries and ``8 S``
+    slots. (One group at ``_B2`` (``_ONE_GROUP``) compiles ~25 % faster again but made k = 1
+    approximate queries at 20,000 points 10-25 % slower, float32 and float64.)
+
+    Exactness as unrolled: a pass certifies a query when its k-th distance lies strictly inside
+    the pass's block (64 ulp margin); the whole-array scan certifies every query it answers,
+    except float64 rows whose selection is ambiguous (float32 ties, :func:`_select_f64`), which
+    are set missing and scanned again by exact arg-min passes after the loop.
+    """
+    eps = jnp.finfo(qry.dtype).eps
+    use_approx = jnp.bool_(False) if approx is None else approx
+    n_valid = g.cstart[-1]
+
+    def done(d2, cert):
+        return cert | (use_approx & jnp.isfinite(d2[:, -1]))
+
+    def run(levels, passes, B, Sl, outs):  # passes: (level, ring, representatives?, whole array?)
+        lo, h, dims, spts, order, cstart = (jnp.stack([getattr(lv, f) for lv in levels])
+                                             for f in ("lo", "h", "dims", "spts", "order", "cstart"))
+        lev, ring, rep, whole = (jnp.asarray([p[i] for p in passes]) for i in range(4))
+        rmax = max(p[1] for p in passes)
+
+        def body(i, outs):
+            li = lev[i]
+            gl = GridIndex(g.ref, g.valid, lo[li], h[li], dims[li], None, spts[li], order[li], cstart=cstart[li])
+            wh = whole[i]
+
+            def one(sel):
+                q = qry[sel]
+                start, length, bound = gl.runs(q, ring[i], rmax)
+                col0 = jnp.arange(start.shape[1]) == 0
+                start = jnp.where(wh, jnp.where(col0, 0, start), start)
+                length = jnp.where(wh, jnp.where(col0, n_valid, 0), length)
+                d2, pos, _, ok = _scan_cells(gl.spts, q, start, length, k, Sl)
+                b = jnp.maximum(bound, 0.0)
+                cert = ok & ((d2[:, -1] < (b * b) * (1 - 64 * eps)) | gated(b))
+                cert = jnp.where(wh, ok, cert & ~rep[i])
+                d2 = jnp.where(wh & ~ok[:, None], jnp.inf, d2)  # ambiguous float64 rows: re-done exactly below
+                return d2, jnp.where(jnp.isfinite(d2), gl.order[pos], -1), cert
+
+            todo = ~done(outs[0], outs[2]) & (use_approx | ~rep[i])
+            return _redo(todo, B, one, outs)
+
+        return lax.fori_loop(0, len(passes), body, tuple(outs))
+
+    # the fine level: wide batches (smaller in float64, whose loop passes measured ~10x slower
+    # than float32's in XLA:CPU)
+    fine, fine_passes = [g], [(0, 2, False, False)]
+    if approx is not None and g.reps is not None:
+        fine.append(g.reps)
+        fine_passes.append((1, 1, True, False))
+    b2 = _B1 // 2 if qry.dtype == jnp.float32 else _B1 // 8
+    if not _ONE_GROUP:
+        outs = run(fine, fine_passes, min(b2, qry.shape[0]), 2 * S, outs)
+        fine, fine_passes = [g], []
+    # the coarse levels and the whole array: narrow batches, many slots
+    coarse, coarse_passes = fine, fine_passes
+    if g.coarse is not None:
+        coarse.append(g.coarse)
+        coarse_passes += [(len(coarse) - 1, r, False, False) for r, name in ((1, "c4r1"), (2, "c4r2"))
+                          if name in _CHAIN]
+        if g.coarse.coarse is not None and "c16r1" in _CHAIN:
+            coarse.append(g.coarse.coarse)
+            coarse_passes.append((len(coarse) - 1, 1, False, False))
+    coarse_passes.append((0, 1, False, True))
+    d2, idx, cert = run(coarse, coarse_passes, _B2, 8 * S, outs)
+    if qry.dtype != jnp.float32 and k > 1:  # ambiguous float64 rows of the whole-array scan
+        refs = _brute_refs(g.ref, g.valid)
+        d2, idx, cert = _redo(~done(d2, cert), 8, lambda sel: _brute_queries(refs, qry[sel], k, _exact=True)[:2]
+                              + (jnp.ones(sel.shape, bool),), (d2, idx, cert))
+    return d2, idx, cert
 
 
 def _grid_knn(ref, valid, qry, k):

@@ -1,0 +1,103 @@
+"""Compile and run time of the grid neighbour search and its users (issues 12 / 13: compile time).
+
+Each workload is ``jax.jit(f).trace(...).lower().compile()`` with process CPU seconds around the
+compile (the machine is shared: CPU seconds, not wall), then the median of 3 runs of the compiled
+program (wall, and process CPU: the steadier figure on a shared machine). The load average is printed per line.
+
+    python benchmarks/compile_knn.py [--only knn10_20k,icp_p2plane_20k,...] [--x64]
+
+Workloads: ``knn{1,10,32}_{2k,20k}`` (``fsjax.ops.knn``, method auto: 2k x 2k is the blocked
+brute force, 20k the grid), ``index_knn10_20k`` (``build_index(coarse=True)`` + exact
+``query_knn`` k = 10, the index ICP builds), ``index_knn1_approx_20k`` (the same with k = 1 and a
+traced ``approx`` flag and gate, ICP's correspondence call), ``radius_20k`` (``radius_search``,
+capacity 32), ``normals_20k`` (``estimate_normals`` k = 16), ``icp_p2plane_20k`` (``icp``, 10 deg,
+two bunny samples). FPFH + RANSAC (``global_registration``, not jittable whole) is measured by
+``python benchmarks/bench_compile.py --sections targets --only fpfh_ransac``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import jax
+
+if "--x64" in sys.argv:
+    jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from fsjax.data import surface_points  # noqa: E402
+
+
+def _rot(deg):
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def workloads(dt):
+    from fsjax import Points
+    from fsjax.fit import icp
+    from fsjax.ops import build_index, estimate_normals, knn, query_knn, radius_search
+
+    clouds = {}
+
+    def cloud(n, seed=0):
+        if (n, seed) not in clouds:
+            clouds[(n, seed)] = jnp.asarray(surface_points("bunny", n, seed), dt)
+        return clouds[(n, seed)]
+
+    w = {}
+    for n, tag in ((2000, "2k"), (20000, "20k")):
+        for k in (1, 10, 32):
+            w[f"knn{k}_{tag}"] = (lambda r, q, k=k: knn(r, q, k), lambda n=n: (cloud(n, 0), cloud(n, 1)))
+    w["index_knn10_20k"] = (lambda r, q: query_knn(build_index(r, k=10, coarse=True), q, 10),
+                            lambda: (cloud(20000, 0), cloud(20000, 1)))
+    w["index_knn1_approx_20k"] = (
+        lambda r, q, a, g: query_knn(build_index(r, k=10, coarse=True), q, 1, approx=a, max_dist=g),
+        lambda: (cloud(20000, 0), cloud(20000, 1) @ jnp.asarray(_rot(10.0), dt).T, jnp.bool_(True),
+                 jnp.asarray(np.inf, dt)))
+    w["radius_20k"] = (lambda r, q: radius_search(r, q, 0.004, 32), lambda: (cloud(20000, 0), cloud(20000, 1)))
+    w["normals_20k"] = (lambda x: estimate_normals(Points(x), k=16).normals, lambda: (cloud(20000, 0),))
+    w["icp_p2plane_20k"] = (lambda s, t: icp(s, t, method="point_to_plane"),
+                            lambda: (cloud(20000, 1) @ jnp.asarray(_rot(10.0), dt).T, cloud(20000, 0)))
+
+    return w
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--only", default=None)
+    ap.add_argument("--x64", action="store_true")
+    ap.add_argument("--runs", type=int, default=3)
+    a = ap.parse_args()
+    dt = jnp.float64 if a.x64 else jnp.float32
+    w = workloads(dt)
+    names = a.only.split(",") if a.only else list(w)
+    print(f"dtype={jnp.dtype(dt).name} jax={jax.__version__}", flush=True)
+    for name in names:
+        f, mk = w[name]
+        args = mk()
+        l0 = os.getloadavg()[0]
+        c0 = time.process_time()
+        lo = jax.jit(f).trace(*args).lower()
+        c1 = time.process_time()
+        comp = lo.compile()
+        c2 = time.process_time()
+        jax.block_until_ready(comp(*args))
+        ts, cs = [], []
+        for _ in range(a.runs):
+            t0, u0 = time.perf_counter(), time.process_time()
+            jax.block_until_ready(comp(*args))
+            ts.append(time.perf_counter() - t0)
+            cs.append(time.process_time() - u0)
+        print(f"{name:24s} trace+lower {c1 - c0:6.2f}s cpu  compile {c2 - c1:6.2f}s cpu  "
+              f"run {np.median(ts) * 1e3:9.1f} ms wall {np.median(cs) * 1e3:9.1f} ms cpu  "
+              f"load {l0:.1f}->{os.getloadavg()[0]:.1f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
