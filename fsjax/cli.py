@@ -346,6 +346,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--whole-chain", type=float, default=None,
                    help="fraction of chains also compiled whole, jit(vmap(chain)) and grad (default 0.05; "
                         "every chain runs through per-stage compiled programs)")
+    p.add_argument("--compile-cache", default=None,
+                   help="persistent compile cache directory for a run (default: fsjax's, as FSJAX_CACHE_DIR "
+                        "resolves it; 'off' disables); the report says whether it was warm or cold")
     p.add_argument("--strict", action="store_true", help="exit 1 on SUSPECT/TYPEMISS/MISMATCH/SILENT_OVERFLOW/GRADNAN")
     p.add_argument("--replay", help="JSON-lines file of chains or failure records to run again")
     p.add_argument("--out", help="output directory (report.md, failures.jsonl, minimised.jsonl)")
