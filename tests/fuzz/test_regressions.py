@@ -92,3 +92,30 @@ def test_phase_correlation_keeps_float32():
     np.testing.assert_allclose(np.asarray(m32.row), np.asarray(m64.row), atol=1e-3)
     np.testing.assert_allclose(np.asarray(m32.col), np.asarray(m64.col), atol=1e-3)
     np.testing.assert_allclose(np.asarray(m32.score), np.asarray(m64.score), atol=1e-4)
+
+
+# li (and li_level) on a single pixel: the default tolerance is half the smallest gap between
+# sorted values, an empty minimum for one pixel, and jnp.min raised a raw "zero-size array to
+# reduction operation min" (SUSPECT in the fourth full run of docs/fuzz.md: ncc_map on a 16 x 16
+# image gives a 1 x 1 map). Fixed in ops/image/_threshold.py: the empty minimum is inf, and a
+# single pixel is a constant image (NaN level, empty region), as documented.
+NCC_LI = {"input": {"dtype": "float32", "kind": "photo", "size": [16, 16], "sort": "Image", "variant": 0},
+          "stages": [{"op": "ncc_map", "a": None, "b": None, "params": {}, "slot": 0},
+                     {"op": "li", "a": None, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_li_on_one_pixel_is_a_constant_image():
+    import numpy as np
+
+    pytest.importorskip("skimage")
+    c = fz.Chain.from_json(NCC_LI)
+    runner = fz.Runner([fsjax.get_op("ncc_map"), fsjax.get_op("li")])
+    o = runner.run(c)
+    assert o.status == "ok", o
+    one = fsjax.Image(jnp.full((1, 1), 0.7))
+    assert np.isnan(float(fsjax.ops.li_level(one).value))
+    assert not bool(fsjax.ops.li(one).data.any())
+    # the null of the fix: two distinct pixels still get Li's level between them
+    two = fsjax.Image(jnp.array([[0.2, 0.8]]))
+    lv = float(fsjax.ops.li_level(two).value)
+    assert 0.2 <= lv < 0.8 and fsjax.ops.li(two).data.tolist() == [[False, True]]
