@@ -371,8 +371,9 @@ class Runner:
             bshape = out.batch_shape
         except Exception:  # noqa: BLE001 - a sort without batch_shape is itself a contract break
             bshape = None
-        if bshape != ():
-            raise _Fail("CONTRACT", i, op, "eager", f"output batch shape {bshape}, expected ()")
+        want = _declared_batch(spec, params)
+        if bshape != want:
+            raise _Fail("CONTRACT", i, op, "eager", f"output batch shape {bshape}, expected {want}")
         in_dt = float_dtype(ins[0]) if float_dtype(ins[0]) else None
         out_dt = float_dtype(out)
         if in_dt and out_dt and in_dt != out_dt:
@@ -404,9 +405,9 @@ class Runner:
         nb_out = _nbytes(out)
         if nb_out > GROWTH_FACTOR * nb_in + GROWTH_SLACK:
             raise _Fail("GROWTH", i, op, "eager", f"output {nb_out} bytes from {nb_in} bytes of input")
-        self._check_finite(i, op, out, "eager")
+        self._check_finite(i, op, out, "eager", params)
 
-    def _check_finite(self, i: int, op: str, out, mode: str) -> None:
+    def _check_finite(self, i: int, op: str, out, mode: str, params=None) -> None:
         import numpy as np
 
         bad = False
@@ -434,7 +435,28 @@ class Runner:
             return
         if type(out).__name__ in ("Feature", "Depth") and not infs:
             return  # documented: a NaN Feature is "could not measure", a NaN depth "no return"
+        if self._documented_neg_inf(op, out, params):
+            return
         raise _Fail("NONFINITE", i, op, mode, "inf in the output" if infs else "NaN in the output")
+
+    def _documented_neg_inf(self, op: str, out, params) -> bool:
+        """True when ``out``'s only non-finite values are -inf that the op documents for the
+        parameter values given (``DOCUMENTED_NEG_INF``)."""
+        import numpy as np
+
+        if params is None:
+            return False
+        rule = DOCUMENTED_NEG_INF.get(op)
+        if rule is None:
+            return False
+        name, value = rule
+        given = dict(params).get(name, self.specs[op].params.get(name) if op in self.specs else None)
+        if given != value:
+            return False
+        for a, _, fl, _ in _leaves_with_mask(out):
+            if fl and np.any(np.isnan(a) | (np.isinf(a) & (a > 0))):
+                return False
+        return True
 
     # -- the four ways ----------------------------------------------------------
     def run(self, chain: Chain, *, whole: bool | None = None) -> Outcome:
@@ -620,7 +642,7 @@ class Runner:
             nans: list = []
             d = _differ(got, eager_outs[i], dtype, nans)
             if nans and not d:
-                self._check_finite(i, op, got, mode)
+                self._check_finite(i, op, got, mode, st.params)
                 return  # failed closed under the trace: later stages would see other data
             if d:
                 if not batched or self._stage_jit(i, st, f, key, member, extras, kn, eager_outs[i], dtype, out):
@@ -659,7 +681,7 @@ class Runner:
         nans: list = []
         d = _differ(yj, ye, dtype, nans)
         if nans and not d:
-            self._check_finite(i, st.op, yj, "jit")
+            self._check_finite(i, st.op, yj, "jit", st.params)
             return False
         if d:
             raise _Fail("MISMATCH", i, st.op, "jit", "jit vs eager: " + d.split(" (")[0], d)
@@ -739,7 +761,7 @@ class Runner:
             nans: list = []
             d = _differ(got, ye, dtype, nans)
             if nans and not d:
-                self._check_finite(i, chain.stages[i].op, got, "vmap")
+                self._check_finite(i, chain.stages[i].op, got, "vmap", chain.stages[i].params)
                 break  # failed closed under the trace: later stages saw other data
             if d:
                 if self._jit_way(chain, f, x, x2, knobs, eager_outs, dtype, out):
@@ -772,7 +794,7 @@ class Runner:
             nans: list = []
             d = _differ(yj, ye, dtype, nans)
             if nans and not d:
-                self._check_finite(i, chain.stages[i].op, yj, "jit")
+                self._check_finite(i, chain.stages[i].op, yj, "jit", chain.stages[i].params)
                 break  # failed closed under the trace: later stages saw other data
             if d:
                 raise _Fail("MISMATCH", i, chain.stages[i].op, "jit", "jit vs eager: " + d.split(" (")[0], d)
@@ -896,6 +918,24 @@ def _vjp_program(f, tdef, fl: tuple):
         return pull([jnp.asarray(c, dtype=jnp.result_type(p)) for c, p in zip(ct, ys)])
 
     return prog
+
+
+# documented -inf outputs: op -> (parameter, value) under which the op writes -inf as "no data"
+# (the op's docstring says so); only -inf is explained, NaN or +inf still fail
+DOCUMENTED_NEG_INF = {
+    "tsdf_fuse": ("fill_holes", False),   # unobserved voxels are -inf with fill_holes=False
+}
+
+
+def _declared_batch(spec, params) -> tuple:
+    """The output batch shape an op declares: ``()``, or ``(max_instances,)`` for an op with a
+    static ``max_instances`` parameter (it returns that many instance slots, best first, as
+    ``generalised_hough3d`` documents)."""
+    if "max_instances" in spec.params:
+        n = dict(params).get("max_instances", spec.params["max_instances"])
+        if isinstance(n, int):
+            return (n,)
+    return ()
 
 
 def _n_found(x) -> int | None:

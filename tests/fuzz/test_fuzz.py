@@ -19,7 +19,7 @@ from fsjax import Contour, Image, Region
 from fsjax.registry import register
 
 PLANTED = ("planted_wrong_sort", "planted_odd_index", "planted_recompile", "planted_overflow",
-           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs", "planted_match_nan")
+           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs", "planted_match_nan", "planted_instances")
 
 
 def _plant():
@@ -66,6 +66,15 @@ def _plant():
         nan = jnp.full((), jnp.nan, img.data.dtype)
         return fsjax.Match3D(jnp.full((3, 3), nan), jnp.full((3,), nan), nan,
                              jnp.asarray(flag), jnp.asarray(0 if flag else 1, jnp.int32))
+
+    @register(family="planted", takes=Image, gives=fsjax.Match3D)
+    def planted_instances(img: Image, *, max_instances: int = 2, extra: int = 0) -> fsjax.Match3D:
+        """Instance slots as generalised_hough3d returns them: batch (max_instances,); ``extra``
+        adds slots beyond the declared number (a contract break)."""
+        n = max_instances + extra
+        z = jnp.zeros((n,), img.data.dtype)
+        return fsjax.Match3D(jnp.broadcast_to(jnp.eye(3, dtype=z.dtype), (n, 3, 3)), jnp.zeros((n, 3), z.dtype),
+                             z + 1, jnp.ones((n,), bool), jnp.zeros((n,), jnp.int32))
 
     @register(family="planted", takes=Image, gives=Image)
     def planted_jit_differs(img: Image) -> Image:
@@ -263,6 +272,18 @@ def test_record_valid_flag_explains_nan(planted):
     assert o.status == "ok", o
     o = runner.run(_chain(["planted_match_nan"], size=(4, 4), params={"planted_match_nan": {"flag": True}}))
     assert (o.status, o.cls, o.op) == ("failed", "NONFINITE", "planted_match_nan"), o
+
+
+def test_instance_batch_declared_by_max_instances(planted):
+    """An op with a static ``max_instances`` declares an output batch of that many slots
+    (generalised_hough3d, reported CONTRACT in the fourth full run); more slots are still a
+    CONTRACT break."""
+    runner, _ = planted
+    o = runner.run(_chain(["planted_instances"], size=(4, 4), params={"planted_instances": {"max_instances": 3}}))
+    assert o.status == "ok", o
+    o = runner.run(_chain(["planted_instances"], size=(4, 4), params={"planted_instances": {"extra": 1}}))
+    assert (o.status, o.cls, o.op) == ("failed", "CONTRACT", "planted_instances"), o
+    assert "expected (2,)" in o.message
 
 
 def test_all_nan_refused_at_the_door(planted):

@@ -119,3 +119,42 @@ def test_li_on_one_pixel_is_a_constant_image():
     two = fsjax.Image(jnp.array([[0.2, 0.8]]))
     lv = float(fsjax.ops.li_level(two).value)
     assert 0.2 <= lv < 0.8 and fsjax.ops.li(two).data.tolist() == [[False, True]]
+
+
+# tsdf_fuse with fill_holes=False writes -inf for unobserved voxels, as its docstring says ("no
+# data"); the fourth full run reported it NONFINITE (the fuzzer flips boolean parameters). Not a
+# bug of the op: the fuzzer now reads the documented -inf of that parameter value
+# (fsjax.fuzz._run.DOCUMENTED_NEG_INF); a NaN or +inf there would still fail.
+TSDF_HOLES = {"input": {"dtype": "float32", "kind": "scene", "size": [16, 16], "sort": "DepthStack", "variant": 0},
+              "stages": [{"op": "tsdf_fuse", "a": None, "b": None, "params": {"fill_holes": False}, "slot": 0}]}
+
+
+def test_tsdf_unobserved_minus_inf_is_documented(monkeypatch):
+    import numpy as np
+
+    from fsjax.fuzz import _run
+
+    c = fz.Chain.from_json(TSDF_HOLES)
+    runner = fz.Runner([fsjax.get_op("tsdf_fuse")], grad=False, vmap=False)
+    o = runner.run(c)
+    assert o.status == "ok", o
+    x = fz.build_input(fsjax.DepthStack, "scene", (16, 16), "float32")
+    v = np.asarray(fsjax.ops.tsdf_fuse(x, fill_holes=False).data)
+    assert np.isneginf(v).any() and not np.isnan(v).any()   # the documented -inf is there
+    monkeypatch.setattr(_run, "DOCUMENTED_NEG_INF", {})   # the null: without the rule
+    o = fz.Runner([fsjax.get_op("tsdf_fuse")], grad=False, vmap=False).run(c)
+    assert (o.status, o.cls) == ("failed", "NONFINITE"), o
+
+
+# generalised_hough3d returns max_instances slots (batch shape (4,) by default), as documented;
+# the fourth full run reported CONTRACT ("output batch shape (4,), expected ()"). The fuzzer now
+# takes an op's static ``max_instances`` as its declared output batch (planted test in
+# test_fuzz.py::test_instance_batch_declared_by_max_instances).
+GHOUGH = {"input": {"dtype": "float64", "kind": "scene", "size": [16, 16], "sort": "Volume", "variant": 0},
+          "stages": [{"op": "generalised_hough3d", "a": 1.0, "b": None, "params": {"max_instances": 2}, "slot": 0}]}
+
+
+def test_generalised_hough3d_instance_slots_are_its_contract():
+    c = fz.Chain.from_json(GHOUGH)
+    o = fz.Runner([fsjax.get_op("generalised_hough3d")], grad=False, vmap=False).run(c)
+    assert o.status == "ok", o
