@@ -511,11 +511,13 @@ class Runner:
         n_ok = len(chain.stages)
         ikey = tuple(sorted(chain.inp.items()))
         c_eager = _COMPILES["s"]
+        cached: set = set()   # stages whose eager result came from an earlier chain's prefix
         for i, (st, spec) in enumerate(zip(chain.stages, specs)):
             self.stats["eager_calls"] += 1
             done = self._eager_done.get((ikey, chain.stages[: i + 1]))
             if done is not None:  # this prefix ran and passed every check before: its result
                 self.stats["eager_hits"] += 1
+                cached.add(i)
                 ins, y = done
                 executed.append(spec.name)
                 eager_outs.append(y)
@@ -556,6 +558,11 @@ class Runner:
                 continue
             self._eager_seen.add(ekey)
             kp = spec.knob_params(st.a, st.b, strict=True)
+            if i in cached:
+                # not called in this chain (its result came from an earlier chain, whose check
+                # did not run if that chain failed): a first call, since the compiled programs
+                # may have been released in between (release_if_needed)
+                jax.block_until_ready(spec.fn(*ins, **kp, **dict(st.params)))
             c0 = _COMPILES["n"]
             jax.block_until_ready(spec.fn(*ins, **kp, **dict(st.params)))
             if _COMPILES["n"] != c0 and self._pending is None:

@@ -185,6 +185,30 @@ def test_prefix_results_reused_and_bugs_after_them_still_caught(planted):
     assert (o.status, o.cls, o.op) == ("failed", "CONTRACT", "planted_wrong_sort"), o
 
 
+def test_prefix_from_a_failed_chain_after_a_release_is_not_a_recompile(planted, monkeypatch):
+    """The fourth full run's false RECOMPILE (vesselness3d, eager): a prefix stored by a chain
+    that failed later (so its eager recompile check never ran), reused after the compiled
+    programs were released; the check now calls such a stage once before the checked call."""
+    import fsjax._cache as fc
+
+    _, specs = planted
+    runner = fz.Runner(specs, grad=False)
+    g = {"op": "gaussian", "a": 0.3, "b": None, "params": {}, "slot": 0}
+
+    def chain(op):
+        return fz.Chain.from_json({"input": {"sort": "Image", "kind": "scene", "size": [5, 5], "dtype": "float64",
+                                             "variant": 0},
+                                   "stages": [g, {"op": op, "a": None, "b": None, "params": {}, "slot": 0}]})
+
+    o = runner.run(chain("planted_wrong_sort"))
+    assert (o.cls, o.stage) == ("CONTRACT", 1), o
+    monkeypatch.setattr(fc, "near_map_limit", lambda: True)
+    assert runner.release_if_needed()
+    o = runner.run(chain("mean"))
+    assert runner.stats["eager_hits"] == 1
+    assert o.status == "ok", o
+
+
 def test_coverage_phase_then_draws_with_replacement():
     """With a DrawState, every op is drawn once (at the canonical size, an op not drawn yet
     first) before any chain extends an earlier prefix; after that ops repeat, chains reuse
