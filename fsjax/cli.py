@@ -31,6 +31,8 @@
 ``tour``, ``run``, ``evolve``, ``sfm`` and ``splat`` keep compiled programs in JAX's persistent compilation
 cache (``fsjax.enable_compile_cache``: the user's cache directory, ``FSJAX_CACHE_DIR``
 overrides it, ``FSJAX_CACHE_DIR=off`` disables it), so a second run skips compilation.
+``fuzz`` does too for a run (not a replay), in ``--compile-cache DIR`` if given, and its
+report says whether the cache was warm or cold at the start.
 """
 
 from __future__ import annotations
