@@ -440,12 +440,14 @@ class Runner:
         raise _Fail("NONFINITE", i, op, mode, "inf in the output" if infs else "NaN in the output")
 
     def _documented_neg_inf(self, op: str, out, params) -> bool:
-        """True when ``out``'s only non-finite values are -inf that the op documents for the
-        parameter values given (``DOCUMENTED_NEG_INF``)."""
+        """True when ``out``'s only non-finite values are ones the op documents: NaN for an op in
+        ``DOCUMENTED_NAN``, -inf for the parameter values in ``DOCUMENTED_NEG_INF``."""
         import numpy as np
 
         if params is None:
             return False
+        if op in DOCUMENTED_NAN:   # NaN (not inf) where the op documents "undefined"
+            return all(not (fl and np.any(np.isinf(a))) for a, _, fl, _ in _leaves_with_mask(out))
         rule = DOCUMENTED_NEG_INF.get(op)
         if rule is None:
             return False
@@ -932,6 +934,11 @@ def _vjp_program(f, tdef, fl: tuple):
 DOCUMENTED_NEG_INF = {
     "tsdf_fuse": ("fill_holes", False),   # unobserved voxels are -inf with fill_holes=False
 }
+# ops whose Image output documents NaN where the value is undefined (an Image has no flag);
+# only NaN is explained, an inf still fails
+DOCUMENTED_NAN = frozenset({
+    "sobel_dir",   # "NaN where the gradient is zero up to rounding (a flat area); mask it with sobel_amp"
+})
 
 
 def _declared_batch(spec, params) -> tuple:

@@ -158,3 +158,27 @@ def test_generalised_hough3d_instance_slots_are_its_contract():
     c = fz.Chain.from_json(GHOUGH)
     o = fz.Runner([fsjax.get_op("generalised_hough3d")], grad=False, vmap=False).run(c)
     assert o.status == "ok", o
+
+
+# sobel_dir on a single bright pixel: NaN on the flat background, as its docstring says ("NaN
+# where the gradient is zero up to rounding ... mask it with sobel_amp"); an Image has no flag,
+# so the warm re-run of the fourth run reported NONFINITE. The fuzzer reads the documented NaN
+# (fsjax.fuzz._run.DOCUMENTED_NAN); an inf would still fail.
+SOBEL_DIR_SPIKE = {"input": {"dtype": "float64", "kind": "spike", "size": [16, 16], "sort": "Image", "variant": 0},
+                   "stages": [{"op": "sobel_dir", "a": None, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_sobel_dir_documented_nan_on_flat_areas(monkeypatch):
+    import numpy as np
+
+    from fsjax.fuzz import _run
+
+    c = fz.Chain.from_json(SOBEL_DIR_SPIKE)
+    assert fz.Runner([fsjax.get_op("sobel_dir")], grad=False, vmap=False).run(c).status == "ok"
+    x = fz.build_input(fsjax.Image, "spike", (16, 16), "float64")
+    d = np.asarray(fsjax.ops.sobel_dir(x).data)
+    amp = np.asarray(fsjax.ops.sobel_amp(x).data)
+    assert np.isnan(d).any() and np.all(amp[np.isnan(d)] == 0)   # NaN exactly where flat
+    monkeypatch.setattr(_run, "DOCUMENTED_NAN", frozenset())   # the null: without the rule
+    o = fz.Runner([fsjax.get_op("sobel_dir")], grad=False, vmap=False).run(c)
+    assert (o.status, o.cls) == ("failed", "NONFINITE"), o
