@@ -31,6 +31,8 @@
 ``tour``, ``run``, ``evolve``, ``sfm`` and ``splat`` keep compiled programs in JAX's persistent compilation
 cache (``fsjax.enable_compile_cache``: the user's cache directory, ``FSJAX_CACHE_DIR``
 overrides it, ``FSJAX_CACHE_DIR=off`` disables it), so a second run skips compilation.
+``fuzz`` does too for a run (not a replay), in ``--compile-cache DIR`` if given, and its
+report says whether the cache was warm or cold at the start.
 """
 
 from __future__ import annotations
@@ -346,6 +348,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--whole-chain", type=float, default=None,
                    help="fraction of chains also compiled whole, jit(vmap(chain)) and grad (default 0.05; "
                         "every chain runs through per-stage compiled programs)")
+    p.add_argument("--compile-cache", default=None,
+                   help="persistent compile cache directory for a run (default: fsjax's, as FSJAX_CACHE_DIR "
+                        "resolves it; 'off' disables); the report says whether it was warm or cold")
     p.add_argument("--strict", action="store_true", help="exit 1 on SUSPECT/TYPEMISS/MISMATCH/SILENT_OVERFLOW/GRADNAN")
     p.add_argument("--replay", help="JSON-lines file of chains or failure records to run again")
     p.add_argument("--out", help="output directory (report.md, failures.jsonl, minimised.jsonl)")

@@ -20,6 +20,7 @@ def main() -> None:
     p.add_argument("--length", type=int, default=6)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-grad", action="store_true")
+    p.add_argument("--journal", help="also write every chain and outcome as JSON lines (cumulative figures later)")
     p.add_argument("--whole", type=float, default=None, help="fraction of chains compiled whole (default: fuzz's)")
     a = p.parse_args()
     import jax
@@ -40,6 +41,8 @@ def main() -> None:
     list_ops()
     t0 = time.perf_counter()
     kw = {} if a.whole is None else {"whole_chain_fraction": a.whole}
+    if a.journal:
+        kw["journal"] = a.journal
     try:
         run = fz.fuzz(a.chains, a.length, a.seed, minimise_failures=False, grad=not a.no_grad, **kw)
     except TypeError:  # the fuzzer before per-stage programs: every chain compiled whole
@@ -55,6 +58,29 @@ def main() -> None:
     for k, (n, s) in sorted(ev.items()):
         print(f"  {k}: n={n} total={s:.1f} s")
     print("runner cache:", getattr(run, "stats", None))
+    n = max(1, len(run.results))
+    tot = collections.Counter()
+    for _, o in run.results:
+        for k in ("eager", "staged", "grad", "whole_traced", "whole_grad", "compile_s", "compiles", "cpu_s",
+                  "eager_compile_s", "staged_compile_s", "grad_compile_s"):
+            tot[k] += float(o.times.get(k, 0.0) or 0.0)
+        tot["seconds"] += o.seconds
+    comp = tot["compile_s"]
+    print(f"per chain: {tot['seconds'] / n:.2f} s wall, {tot['cpu_s'] / n:.2f} s CPU; compiling {comp / n:.2f} s "
+          f"({tot['compiles'] / n:.1f} compiles), running (the rest) {(tot['seconds'] - comp) / n:.2f} s; "
+          f"eager {tot['eager'] / n:.2f} s (of it compiling {tot['eager_compile_s'] / n:.2f} s), staged "
+          f"{tot['staged'] / n:.2f} s (compiling {tot['staged_compile_s'] / n:.2f}), grad {tot['grad'] / n:.2f} s "
+          f"(compiling {tot['grad_compile_s'] / n:.2f}), whole {(tot['whole_traced'] + tot['whole_grad']) / n:.2f} s")
+    st = getattr(run, "stats", None) or {}
+
+    def rate(h, c):
+        return f"{st.get(h, 0)}/{st.get(c, 0)} ({100 * st.get(h, 0) / max(1, st.get(c, 0)):.0f} %)"
+
+    print(f"cache hits: stage programs {rate('stage_hits', 'stage_calls')}, grad programs "
+          f"{rate('grad_hits', 'grad_calls')}, eager prefixes {rate('eager_hits', 'eager_calls')}, "
+          f"staged prefixes {st.get('staged_prefix_hits', 0)}")
+    print(f"chains per CPU-minute {60 * len(run.results) / max(run.cpu_seconds, 1e-9):.1f}; "
+          f"ops executed {100 * run.executed_fraction():.1f} %")
     st = collections.Counter(o.status for _, o in run.results)
     print("outcomes:", dict(st), "classes:", {k: v for k, v in run.class_counts().items() if v})
     print("mean length", sum(len(c.stages) for c, _ in run.results) / max(1, len(run.results)))

@@ -32,9 +32,30 @@ What "under jit" means. Compilation is what a chain costs, so the traced ways ru
   index)``) and for every replayed chain. Only those chains test what XLA does *across*
   stages (fusion, simplification of one op's output by the next).
 
+How chains are drawn so that compiled programs repeat (the cost of a chain is compiling):
+
+* a **coverage phase**: while some drawable op has not been drawn, an op not drawn yet is
+  drawn first (weight 1 against ``COVERAGE_USED_WEIGHT / (1 + uses)^2``), on inputs of the
+  canonical size 16 x 16 (both dtypes, every kind of content); about 110 chains cover the
+  registry's ~228 ops;
+* then a **reuse phase**, drawing **with replacement**: with probability ``PREFIX_REUSE``
+  (0.6) a chain starts from an earlier chain's input and a prefix of its stages, knob values
+  included (a prefix that was refused or failed is cut before the stage that stopped it), and
+  is extended with new stages; an (op, running sort, size, dtype) combination drawn before
+  weighs ``SEEN_WEIGHT`` (4) times an unseen one;
+* the pool's sizes: the canonical 16 x 16, the odd 15 x 17 for 15 % of scene/raster inputs,
+  and the edge inputs 1 x 1 and 3 x 5 (rarer than before);
+* the runner keeps the **eager results and stage-program batches of every chain prefix that
+  passed** every check, keyed by (input, stages so far): a chain extending that prefix takes
+  them instead of running those stages again; the stage after the prefix, the grad way (its
+  cotangent comes from the chain's end) and the chain compiled whole always run;
+* ``fsjax fuzz`` switches on JAX's persistent compile cache (``--compile-cache DIR``,
+  default :func:`fsjax.enable_compile_cache`'s directory, ``off`` disables); the report
+  states whether it was warm (held programs at the start) or cold.
+
 Knob values are drawn on a grid of ``1 / KNOB_STEPS`` (concrete values that size kernels
-compile the eager primitives again), and the pool has few sizes and two dtypes, so the
-caches hit. Every failure lands in exactly one class with a signature that groups duplicates:
+compile the eager primitives again). Every failure lands in exactly one class with a
+signature that groups duplicates:
 
 ``CONTRACT``  a declared sort, batch shape or dtype not kept (or an all-NaN input accepted)
 ``SUSPECT``   a raw exception that is not fsjax's own clear error (``IndexError``, an XLA

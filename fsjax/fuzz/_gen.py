@@ -17,7 +17,7 @@ import random
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["Chain", "Stage", "SortGraph", "IMAGE_KINDS", "KNOB_STEPS", "build_input", "generate_chain"]
+__all__ = ["Chain", "DrawState", "Stage", "SortGraph", "IMAGE_KINDS", "KNOB_STEPS", "build_input", "generate_chain"]
 
 # Image inputs of the pool: kind -> (weight, default size). Sizes are few on purpose: every
 # new shape compiles every primitive again.
@@ -27,8 +27,8 @@ IMAGE_KINDS: dict[str, tuple[float, tuple[int, int] | None]] = {
     "constant": (1.0, (16, 16)),
     "spike": (1.0, (16, 16)),    # a single bright pixel on black
     "large": (1.0, (16, 16)),    # the scene times 1e6 (very large values)
-    "tiny": (0.7, (1, 1)),
-    "odd": (1.0, (3, 5)),
+    "tiny": (0.4, (1, 1)),       # edge sizes: rarer than before (every new shape compiles again)
+    "odd": (0.6, (3, 5)),
     "nan": (0.3, (16, 16)),      # all-NaN: must be refused at the door
 }
 try:  # scikit-image is not a core dependency: without it the pool has no photograph
@@ -36,6 +36,8 @@ try:  # scikit-image is not a core dependency: without it the pool has no photog
 except ImportError:
     del IMAGE_KINDS["photo"]
 SIZES: tuple[tuple[int, int], ...] = ((16, 16), (15, 17))
+# the canonical size most chains use (its programs repeat), and the odd size now and then
+SIZE_WEIGHTS: tuple[float, ...] = (0.85, 0.15)
 DTYPES: tuple[str, ...] = ("float64", "float32")
 RASTER_KINDS = ("scene", "constant", "empty")  # other raster sorts (Color, Region, Labels, ...)
 # sorts whose "constant" variant is a meaningful input (a flat raster, volume or profile);
@@ -245,6 +247,13 @@ class SortGraph:
             return False
         return all(any(issubclass(p, t) for p in self.pool) for j, t in enumerate(spec.takes) if j != slot)
 
+    def candidates(self, sort: type) -> list:
+        """``(spec, slot)`` for every op slot that can take the running value of ``sort`` (cached)."""
+        memo = self.__dict__.setdefault("_cands", {})
+        if sort not in memo:
+            memo[sort] = [(s, i) for s in self.specs.values() for i in self.slots_for(s, sort)]
+        return memo[sort]
+
     def slots_for(self, spec, sort: type) -> list[int]:
         """Slots of ``spec`` that can take the running value of ``sort`` (others from the pool)."""
         out = []
@@ -253,6 +262,13 @@ class SortGraph:
                                            for j, u in enumerate(spec.takes) if j != i):
                 out.append(i)
         return out
+
+    def sorts_after(self, sort_name: str, stages) -> type:
+        """The running sort after ``stages`` applied to an input of sort ``sort_name``."""
+        cur = next(t for t in self.pool if t.__name__ == sort_name)
+        for st in stages:
+            cur = self.specs[st.op].gives
+        return cur
 
     def runnable(self, spec) -> bool:
         return any(self._slot_ok(spec, i, self.reachable) for i in range(len(spec.takes)))
@@ -307,49 +323,117 @@ def _weighted(rng: random.Random, items: list, weights: list[float]):
     return items[-1]
 
 
-def _input_for(sort: type, rng: random.Random) -> dict:
+def _input_for(sort: type, rng: random.Random, canonical: bool = False) -> dict:
+    """An input description for ``sort``: kind, size and dtype drawn. ``canonical``: the
+    coverage phase's input, at the canonical size ``SIZES[0]`` (edge sizes left out)."""
     from fsjax.types import Image
 
     dtype = rng.choice(DTYPES)
+    size_w = [1.0] if canonical else list(SIZE_WEIGHTS)
     if sort is Image:
-        kinds = list(IMAGE_KINDS)
+        kinds = [k for k in IMAGE_KINDS if not canonical or IMAGE_KINDS[k][1] in (None, SIZES[0])]
         kind = _weighted(rng, kinds, [IMAGE_KINDS[k][0] for k in kinds])
-        size = IMAGE_KINDS[kind][1] or rng.choice(SIZES)
+        size = IMAGE_KINDS[kind][1] or _weighted(rng, list(SIZES[: len(size_w)]), size_w)
     else:
         kind = _weighted(rng, list(RASTER_KINDS), [4.0, 1.0, 0.5])
-        size = rng.choice(SIZES)
+        size = _weighted(rng, list(SIZES[: len(size_w)]), size_w)
         if (kind == "empty" and sort.__name__ != "Region") or sort.__name__ not in RASTER_SORTS:
             kind = "scene"
     return {"sort": sort.__name__, "kind": kind, "size": tuple(size), "dtype": dtype, "variant": 0}
 
 
-def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: dict[str, int]) -> Chain:
-    """One random type-correct chain; ops used less so far are drawn more often (``uses`` is updated)."""
+# After every op has been drawn once (the coverage phase), ops are drawn WITH replacement:
+# a chain then starts, with probability ``PREFIX_REUSE``, from an earlier chain's input and
+# a prefix of its stages (knob values included: its eager results, stage programs and grad
+# programs all exist), and is extended with new stages; an op whose (op, running sort,
+# input size, dtype) was drawn before weighs ``SEEN_WEIGHT`` times an unseen one (its
+# compiled programs very likely exist). Least-used-first drawing stays for the unseen.
+PREFIX_REUSE = 0.6
+SEEN_WEIGHT = 4.0
+HISTORY = 400   # earlier chains a prefix is drawn from (the most recent)
+COVERAGE_USED_WEIGHT = 0.02   # coverage phase: an op drawn before, against 1 for one not drawn yet
 
-    def w(name: str) -> float:
-        return 1.0 / (1.0 + uses.get(name, 0)) ** 2
+
+@dataclasses.dataclass
+class DrawState:
+    """What the generator remembers across chains of one run: op uses, the (op, sort, size,
+    dtype) combinations drawn (their programs were compiled), and recent chains (prefixes to
+    extend). ``generate_chain`` updates it."""
+
+    uses: dict[str, int] = dataclasses.field(default_factory=dict)
+    seen: set = dataclasses.field(default_factory=set)
+    history: list = dataclasses.field(default_factory=list)
+    covered: bool = False   # every drawable op drawn at least once: the reuse phase
+
+
+def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: dict[str, int] | DrawState,
+                   ) -> Chain:
+    """One random type-correct chain.
+
+    ``uses``: a :class:`DrawState` (or, as before, a bare dict of op uses: then every chain is
+    drawn least-used-first, the coverage phase only). While some drawable op has not been
+    drawn (the coverage phase), an op not drawn yet weighs 1 and one drawn ``u`` times
+    ``COVERAGE_USED_WEIGHT / (1 + u)^2``, on the canonical input size (with a bare dict:
+    ``1 / (1 + u)^2``, every size). After that (the reuse phase) a chain extends an earlier chain's prefix with
+    probability ``PREFIX_REUSE``, and combinations drawn before weigh ``SEEN_WEIGHT`` times
+    more (see the module constants).
+    """
+    state = uses if isinstance(uses, DrawState) else None
+    uses = state.uses if state is not None else uses
+    reuse = state is not None and state.covered
+
+    def w(name: str, sort: type | None = None, inp: dict | None = None) -> float:
+        base = 1.0 / (1.0 + uses.get(name, 0)) ** 2
+        if state is not None and not reuse:   # the coverage phase: an op not drawn yet first
+            return 1.0 if not uses.get(name) else COVERAGE_USED_WEIGHT * base
+        if not reuse:
+            return base
+        # the reuse phase: with replacement, combinations drawn before (compiled) preferred
+        return SEEN_WEIGHT if (name, sort.__name__, inp["size"], inp["dtype"]) in state.seen else 1.0
 
     length = rng.randint(1, max_length)
-    # first stage: any op with a slot the pool feeds directly
-    firsts = [(s, i, p) for s in graph.specs.values() for p in sorted(graph.pool, key=lambda t: t.__name__)
-              for i in graph.slots_for(s, p)]
-    spec, slot, psort = _weighted(rng, firsts, [w(s.name) for s, _, _ in firsts])
-    inp = _input_for(psort, rng)
-    stages = []
+    stages: list[Stage] = []
     cur = None
-    for k in range(length):
+    inp = None
+    if reuse and state.history and length > 1 and rng.random() < PREFIX_REUSE:
+        prev = state.history[rng.randrange(len(state.history))]
+        k = rng.randint(1, min(length - 1, len(prev.stages)))
+        inp = prev.inp
+        stages = list(prev.stages[:k])
+        cur = graph.sorts_after(inp["sort"], stages)
+    if not stages:
+        # first stage: any op with a slot the pool feeds directly
+        firsts = [(s, i, p) for p in sorted(graph.pool, key=lambda t: t.__name__) for s, i in graph.candidates(p)]
+        sort_in = {}
+        fw = []
+        for s, _, p in firsts:
+            if p not in sort_in:
+                sort_in[p] = _input_for(p, rng, canonical=state is not None and not reuse)
+            fw.append(w(s.name, p, sort_in[p]))
+        spec, slot, psort = _weighted(rng, firsts, fw)
+        inp = sort_in[psort]
+    for k in range(len(stages), length):
         if k > 0:
-            cands = [(s, i) for s in graph.specs.values() for i in graph.slots_for(s, cur)]
+            cands = graph.candidates(cur)
             if not cands:
                 break
-            spec, slot = _weighted(rng, cands, [w(s.name) for s, _ in cands])
+            spec, slot = _weighted(rng, cands, [w(s.name, cur, inp) for s, _ in cands])
         knobs = [_draw_knob(rng) if rng.random() < 0.85 else None for _ in spec.knobs]
         a = knobs[0] if knobs else None
         b = knobs[1] if len(knobs) > 1 else None
         stages.append(Stage(spec.name, a, b, _draw_params(spec, rng), slot))
         uses[spec.name] = uses.get(spec.name, 0) + 1
+        if state is not None:
+            state.seen.add((spec.name, (cur or psort).__name__, inp["size"], inp["dtype"]))
         cur = spec.gives
-    return Chain(tuple(sorted(inp.items())), tuple(stages))
+    chain = Chain(tuple(sorted(inp.items())), tuple(stages))
+    if state is not None:
+        state.history.append(chain)
+        del state.history[:-HISTORY]
+        if not state.covered:
+            drawable = graph.__dict__.setdefault("_drawable", [n for n, s in graph.specs.items() if graph.runnable(s)])
+            state.covered = all(uses.get(n, 0) for n in drawable)
+    return chain
 
 
 def knob_values(chain: Chain) -> list[tuple[float, float]]:

@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ._gen import Chain, SortGraph, generate_chain
+from ._gen import Chain, DrawState, SortGraph, generate_chain
 from ._run import CLASSES, Outcome, Runner
 
 __all__ = ["FuzzRun", "fuzz", "load_journal", "minimise", "replay", "write_report", "temporary_ops", "pool_sorts",
@@ -46,16 +46,12 @@ def temporary_ops():
 
 def pool_sorts(specs: Sequence[Any]) -> set[type]:
     """Sorts among the ops' inputs that :func:`fsjax.synth.standard_input` can build."""
-    from fsjax.synth import standard_input
+    from fsjax.registry import list_ops
+    from fsjax.synth._pool import _POOL
 
-    out = set()
-    for t in {t for s in specs for t in s.takes}:
-        try:
-            standard_input(t, 0)
-        except KeyError:
-            continue
-        out.add(t)
-    return out
+    list_ops()  # op families register the pool builders of the sorts they introduce
+    # membership, not a build: standard_input(t) is defined exactly for the sorts in its pool
+    return {t for s in specs for t in s.takes if t in _POOL}
 
 
 @dataclasses.dataclass
@@ -168,17 +164,18 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
     run = FuzzRun(seed, max_length, {s.name: s for s in specs}, graph, whole_chain_fraction=whole_chain_fraction)
     run.stats = runner.stats
     rng = random.Random(seed)
-    uses: dict[str, int] = {}
+    state = DrawState()
     t0, c0 = time.perf_counter(), time.process_time()
     for k in range(n_chains):
         if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
             run.stopped_early = f"time budget {time_budget_s:.0f} s reached after {k} chains"
             break
-        chain = generate_chain(graph, rng, max_length, uses)
+        chain = generate_chain(graph, rng, max_length, state)
         whole = random.Random(f"{seed}:{k}").random() < whole_chain_fraction
         runner.release_if_needed()
         o = runner.run(chain, whole=whole)
         run.results.append((chain, o))
+        _keep_prefix(state, chain, o)
         if journal is not None:
             with open(journal, "a") as fh:
                 fh.write(json.dumps({"chain": chain.to_json(), "outcome": o.to_json()}, default=str) + "\n")
@@ -199,6 +196,19 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
             run.minimised[sig] = minimise(runner, c, o, max_trials=max_minimise_trials)
         run.minimise_seconds = time.perf_counter() - t1
     return run
+
+
+def _keep_prefix(state: DrawState, chain: Chain, o: Outcome) -> None:
+    """Later chains extend only the part of ``chain`` that passed: a refused or failed chain is
+    cut before the stage that stopped it (a prefix that stops again wastes the chain)."""
+    if o.status == "ok":
+        return
+    n = len(o.executed) if o.status == "refused" else (o.stage or 0) if o.stage is not None else 0
+    if state.history and state.history[-1] is chain:
+        if n <= 0:
+            state.history.pop()
+        else:
+            state.history[-1] = chain.replace(stages=chain.stages[:n])
 
 
 def load_journal(path: str | os.PathLike, *, seed: int = -1, max_length: int = 0,
@@ -386,6 +396,10 @@ def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "")
         L.append(f"| compiled programs released (memory-map limit) | {st.get('released', 0)} time(s) |")
         L.append(f"| compiles (backend compiles + traces, all ways) | {comp} ({comp / max(1, n):.1f} per chain, "
                  f"{comp_s:.0f} s) |")
+        L.append(f"| eager stages taken from an earlier chain's prefix | {st.get('eager_hits', 0)} of "
+                 f"{st.get('eager_calls', 0)} ({100 * st.get('eager_hits', 0) / max(1, st.get('eager_calls', 0)):.0f} %;"
+                 f" staged: {st.get('staged_prefix_hits', 0)}) |")
+        L.append(f"| persistent compile cache | {st.get('compile_cache', 'not enabled (library call)')} |")
     if run.stopped_early:
         L.append(f"| stopped early | {run.stopped_early} |")
     L.append("")
@@ -442,6 +456,20 @@ def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "")
     return path
 
 
+def _compile_cache(where: str | None) -> str:
+    """Switch on JAX's persistent compile cache for a CLI run (``--compile-cache DIR``, default
+    the user's cache as :func:`fsjax.enable_compile_cache` resolves it; ``off`` disables) and
+    say whether it was warm (held programs at the start) or cold: a warm cache loads programs an
+    earlier run compiled, so the rate depends on it and the report states it."""
+    from .._cache import enable_compile_cache
+
+    d = enable_compile_cache(where)
+    if d is None:
+        return "off"
+    n = sum(1 for _ in d.iterdir())
+    return f"{'warm' if n else 'cold'} ({n} entries at the start, {d})"
+
+
 def cli_main(args) -> int:
     """``fsjax fuzz``: run (``--chains``) or replay (``--replay FILE``).
 
@@ -461,11 +489,13 @@ def cli_main(args) -> int:
     Path(args.out).mkdir(parents=True, exist_ok=True)
     journal = Path(args.out) / "chains.jsonl"
     journal.write_text("")
+    cache_note = _compile_cache(getattr(args, "compile_cache", None))
     run = fuzz(args.chains, args.length, args.seed, time_budget_s=args.minutes * 60 if args.minutes else None,
                progress=lambda s: print(s, flush=True), grad=not args.no_grad, journal=journal,
                minimise_budget_s=max(120.0, 0.15 * 60 * args.minutes) if args.minutes else None,
                whole_chain_fraction=WHOLE_CHAIN_FRACTION if getattr(args, "whole_chain", None) is None
                else args.whole_chain)
+    run.stats["compile_cache"] = cache_note
     path = write_report(run, args.out, command=cmd)
     cc = {k: v for k, v in run.class_counts().items() if v}
     print(f"fsjax fuzz: {len(run.results)} chains in {run.seconds:.0f} s; ops executed "

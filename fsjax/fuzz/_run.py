@@ -260,7 +260,14 @@ class Runner:
         self._jprog: dict = {}         # stage key -> jit(stage)
         self._gprog: dict = {}         # stage key -> jit(vjp of stage)
         self._eager_seen: set = set()  # eager stage keys whose second call was checked
-        self.stats = {"stage_calls": 0, "stage_hits": 0, "grad_calls": 0, "grad_hits": 0, "whole": 0}
+        # results of chain prefixes that passed every check, keyed by (input, stages so far):
+        # a chain extending an earlier chain's prefix (the generator's reuse phase) takes them
+        # instead of running those stages again (the same input, op, knob values and
+        # parameters give the same result; they were checked the first time)
+        self._eager_done: dict = {}    # prefix key -> (stage inputs, eager output)
+        self._staged_done: dict = {}   # prefix key -> running batch after the stage program
+        self.stats = {"stage_calls": 0, "stage_hits": 0, "grad_calls": 0, "grad_hits": 0, "whole": 0,
+                      "eager_calls": 0, "eager_hits": 0, "staged_prefix_hits": 0}
 
     # -- pieces -----------------------------------------------------------
     def release_if_needed(self) -> bool:
@@ -279,6 +286,7 @@ class Runner:
         self._vprog.clear()
         self._jprog.clear()
         self._gprog.clear()
+        self._staged_done.clear()
         jax.clear_caches()
         gc.collect()
         self.stats["released"] = self.stats.get("released", 0) + 1
@@ -363,8 +371,9 @@ class Runner:
             bshape = out.batch_shape
         except Exception:  # noqa: BLE001 - a sort without batch_shape is itself a contract break
             bshape = None
-        if bshape != ():
-            raise _Fail("CONTRACT", i, op, "eager", f"output batch shape {bshape}, expected ()")
+        want = _declared_batch(spec, params)
+        if bshape != want:
+            raise _Fail("CONTRACT", i, op, "eager", f"output batch shape {bshape}, expected {want}")
         in_dt = float_dtype(ins[0]) if float_dtype(ins[0]) else None
         out_dt = float_dtype(out)
         if in_dt and out_dt and in_dt != out_dt:
@@ -396,9 +405,9 @@ class Runner:
         nb_out = _nbytes(out)
         if nb_out > GROWTH_FACTOR * nb_in + GROWTH_SLACK:
             raise _Fail("GROWTH", i, op, "eager", f"output {nb_out} bytes from {nb_in} bytes of input")
-        self._check_finite(i, op, out, "eager")
+        self._check_finite(i, op, out, "eager", params)
 
-    def _check_finite(self, i: int, op: str, out, mode: str) -> None:
+    def _check_finite(self, i: int, op: str, out, mode: str, params=None) -> None:
         import numpy as np
 
         bad = False
@@ -426,7 +435,30 @@ class Runner:
             return
         if type(out).__name__ in ("Feature", "Depth") and not infs:
             return  # documented: a NaN Feature is "could not measure", a NaN depth "no return"
+        if self._documented_neg_inf(op, out, params):
+            return
         raise _Fail("NONFINITE", i, op, mode, "inf in the output" if infs else "NaN in the output")
+
+    def _documented_neg_inf(self, op: str, out, params) -> bool:
+        """True when ``out``'s only non-finite values are ones the op documents: NaN for an op in
+        ``DOCUMENTED_NAN``, -inf for the parameter values in ``DOCUMENTED_NEG_INF``."""
+        import numpy as np
+
+        if params is None:
+            return False
+        if op in DOCUMENTED_NAN:   # NaN (not inf) where the op documents "undefined"
+            return all(not (fl and np.any(np.isinf(a))) for a, _, fl, _ in _leaves_with_mask(out))
+        rule = DOCUMENTED_NEG_INF.get(op)
+        if rule is None:
+            return False
+        name, value = rule
+        given = dict(params).get(name, self.specs[op].params.get(name) if op in self.specs else None)
+        if given != value:
+            return False
+        for a, _, fl, _ in _leaves_with_mask(out):
+            if fl and np.any(np.isnan(a) | (np.isinf(a) & (a > 0))):
+                return False
+        return True
 
     # -- the four ways ----------------------------------------------------------
     def run(self, chain: Chain, *, whole: bool | None = None) -> Outcome:
@@ -479,7 +511,21 @@ class Runner:
         eager_outs = []
         stage_ins = []   # the eager inputs of every stage (all slots)
         n_ok = len(chain.stages)
+        ikey = tuple(sorted(chain.inp.items()))
+        c_eager = _COMPILES["s"]
+        cached: set = set()   # stages whose eager result came from an earlier chain's prefix
         for i, (st, spec) in enumerate(zip(chain.stages, specs)):
+            self.stats["eager_calls"] += 1
+            done = self._eager_done.get((ikey, chain.stages[: i + 1]))
+            if done is not None:  # this prefix ran and passed every check before: its result
+                self.stats["eager_hits"] += 1
+                cached.add(i)
+                ins, y = done
+                executed.append(spec.name)
+                eager_outs.append(y)
+                stage_ins.append(ins)
+                cur = y
+                continue
             ins = self._assemble(st, spec, cur, dtype)
             try:
                 kp = spec.knob_params(st.a, st.b, strict=True)
@@ -494,6 +540,7 @@ class Runner:
             if chain.inp["kind"] == "nan" and i == 0:
                 raise _Fail("CONTRACT", 0, spec.name, "eager", "all-NaN input accepted at the door")
             self._check_stage(i, spec, ins, y, kp, st.params)
+            self._remember(self._eager_done, (ikey, chain.stages[: i + 1]), (ins, y))
             executed.append(spec.name)
             eager_outs.append(y)
             stage_ins.append(ins)
@@ -513,6 +560,11 @@ class Runner:
                 continue
             self._eager_seen.add(ekey)
             kp = spec.knob_params(st.a, st.b, strict=True)
+            if i in cached:
+                # not called in this chain (its result came from an earlier chain, whose check
+                # did not run if that chain failed): a first call, since the compiled programs
+                # may have been released in between (release_if_needed)
+                jax.block_until_ready(spec.fn(*ins, **kp, **dict(st.params)))
             c0 = _COMPILES["n"]
             jax.block_until_ready(spec.fn(*ins, **kp, **dict(st.params)))
             if _COMPILES["n"] != c0 and self._pending is None:
@@ -520,15 +572,18 @@ class Runner:
                 self._pending = _Fail("RECOMPILE", i, spec.name, "eager",
                                       "a second eager call with the same input compiled again")
         out.times["eager"] = time.perf_counter() - t_start
+        out.times["eager_compile_s"] = _COMPILES["s"] - c_eager
         x2 = self._inputs(chain, 1)
-        t_start = time.perf_counter()
-        self._staged(chain, specs, x, x2, stage_ins, eager_outs, dtype, out)
+        t_start, c_s = time.perf_counter(), _COMPILES["s"]
+        self._staged(chain, specs, x, x2, stage_ins, eager_outs, dtype, out, ikey)
         out.times["staged"] = time.perf_counter() - t_start
+        out.times["staged_compile_s"] = _COMPILES["s"] - c_s
         differentiable = self.do_grad and all(s.differentiable for s in specs)
         if differentiable:
-            t_start = time.perf_counter()
+            t_start, c_s = time.perf_counter(), _COMPILES["s"]
             self._grad_staged(chain, specs, stage_ins, eager_outs, dtype)
             out.times["grad"] = time.perf_counter() - t_start
+            out.times["grad_compile_s"] = _COMPILES["s"] - c_s
         if not whole:
             return
         self.stats["whole"] += 1
@@ -543,7 +598,13 @@ class Runner:
             out.times["whole_grad"] = time.perf_counter() - t_start
 
     # -- the traced ways, stage by stage -------------------------------------------
-    def _staged(self, chain, specs, x, x2, stage_ins, eager_outs, dtype, out) -> None:
+    @staticmethod
+    def _remember(cache: dict, key, value, limit: int = 3000) -> None:
+        cache[key] = value
+        if len(cache) > limit:  # the oldest first
+            del cache[next(iter(cache))]
+
+    def _staged(self, chain, specs, x, x2, stage_ins, eager_outs, dtype, out, ikey=None) -> None:
         """Each stage through its cached ``jit(vmap(stage))`` over the batch ``[x, x2]`` (member 0
         must equal the eager result); the running batch feeds the next stage's program."""
         import jax
@@ -561,6 +622,12 @@ class Runner:
             op = spec.name
             extras = tuple(a for j, a in enumerate(stage_ins[i]) if j != st.slot)
             kn = jnp.asarray([0.5 if st.a is None else st.a, 0.5 if st.b is None else st.b], dtype=dtype)
+            pkey = (ikey, batched, chain.stages[: i + 1])
+            done = self._staged_done.get(pkey) if ikey is not None else None
+            if done is not None:  # this prefix passed its stage programs before: their batch
+                self.stats["staged_prefix_hits"] += 1
+                cur = done
+                continue
             member = jax.tree_util.tree_map(lambda v: v[0], cur) if batched else cur
             key = self._stage_key(st, member, extras, dtype)
             f = self._stage_fn(st, spec)
@@ -584,7 +651,7 @@ class Runner:
             nans: list = []
             d = _differ(got, eager_outs[i], dtype, nans)
             if nans and not d:
-                self._check_finite(i, op, got, mode)
+                self._check_finite(i, op, got, mode, st.params)
                 return  # failed closed under the trace: later stages would see other data
             if d:
                 if not batched or self._stage_jit(i, st, f, key, member, extras, kn, eager_outs[i], dtype, out):
@@ -608,6 +675,8 @@ class Runner:
                         raise _Fail("MISMATCH", i, op, "vmap", "batch member depends on its position: " + d.split(" (")[0],
                                     d)
             cur = y
+            if ikey is not None:
+                self._remember(self._staged_done, pkey, y)
 
     def _stage_jit(self, i, st, f, key, member, extras, kn, ye, dtype, out) -> bool:
         """Plain ``jit(stage)`` on member 0's input: raises a ``_Fail`` for a broken jit way; True
@@ -621,7 +690,7 @@ class Runner:
         nans: list = []
         d = _differ(yj, ye, dtype, nans)
         if nans and not d:
-            self._check_finite(i, st.op, yj, "jit")
+            self._check_finite(i, st.op, yj, "jit", st.params)
             return False
         if d:
             raise _Fail("MISMATCH", i, st.op, "jit", "jit vs eager: " + d.split(" (")[0], d)
@@ -634,27 +703,16 @@ class Runner:
         out.refused_traced = (op, r[1])
 
     def _grad_staged(self, chain, specs, stage_ins, eager_outs, dtype) -> None:
-        """``grad`` of the scalar of :meth:`_grad_nan` through the chain, as the composition of
+        """``grad`` of the scalar of :func:`_output_weights` through the chain, as the composition of
         each stage's cached ``jit(vjp(stage))`` at the eager inputs (the chain rule, stage by
         stage); a NaN cotangent from a finite one blames that stage."""
         import jax
         import jax.numpy as jnp
         import numpy as np
 
-        key0 = jax.random.PRNGKey(7)
-        y = eager_outs[-1]
-        valid = getattr(y, "valid", None)
-        ct = []
-        total = 0.0
-        for j, leaf in enumerate(jax.tree_util.tree_leaves(y)):
-            if not jnp.issubdtype(jnp.result_type(leaf), jnp.inexact):
-                continue
-            w = jax.random.normal(jax.random.fold_in(key0, j), jnp.shape(leaf), dtype=jnp.result_type(leaf))
-            ok = jnp.isfinite(leaf)
-            if valid is not None and valid.dtype == jnp.bool_ and valid.ndim and leaf.shape[: valid.ndim] == valid.shape:
-                ok = ok & valid.reshape(valid.shape + (1,) * (leaf.ndim - valid.ndim))
-            total = total + float(jnp.sum(jnp.where(ok, leaf, 0.0) * w))
-            ct.append(jnp.where(ok, w, 0.0))
+        terms = _output_weights(eager_outs[-1])
+        total = sum(float(jnp.sum(jnp.where(ok, leaf, 0.0) * w)) for leaf, w, ok in terms)
+        ct = [jnp.where(ok, w, 0.0) for _, w, ok in terms]
         if not np.isfinite(total):
             return  # forward not finite: NONFINITE's business
         for i in range(len(chain.stages) - 1, -1, -1):
@@ -712,7 +770,7 @@ class Runner:
             nans: list = []
             d = _differ(got, ye, dtype, nans)
             if nans and not d:
-                self._check_finite(i, chain.stages[i].op, got, "vmap")
+                self._check_finite(i, chain.stages[i].op, got, "vmap", chain.stages[i].params)
                 break  # failed closed under the trace: later stages saw other data
             if d:
                 if self._jit_way(chain, f, x, x2, knobs, eager_outs, dtype, out):
@@ -745,7 +803,7 @@ class Runner:
             nans: list = []
             d = _differ(yj, ye, dtype, nans)
             if nans and not d:
-                self._check_finite(i, chain.stages[i].op, yj, "jit")
+                self._check_finite(i, chain.stages[i].op, yj, "jit", chain.stages[i].params)
                 break  # failed closed under the trace: later stages saw other data
             if d:
                 raise _Fail("MISMATCH", i, chain.stages[i].op, "jit", "jit vs eager: " + d.split(" (")[0], d)
@@ -785,25 +843,13 @@ class Runner:
 
         leaves, tdef = jax.tree_util.tree_flatten(x)
         fl = [i for i, v in enumerate(leaves) if jnp.issubdtype(jnp.result_type(v), jnp.floating)]
-        key = jax.random.PRNGKey(7)
 
         def loss(xf, kn):
             new = list(leaves)
             for i, v in zip(fl, xf):
                 new[i] = v
             y = f(jax.tree_util.tree_unflatten(tdef, new), kn)[-1]
-            valid = getattr(y, "valid", None)
-            total = 0.0
-            for j, leaf in enumerate(jax.tree_util.tree_leaves(y)):
-                if not jnp.issubdtype(jnp.result_type(leaf), jnp.inexact):
-                    continue
-                w = jax.random.normal(jax.random.fold_in(key, j), jnp.shape(leaf), dtype=jnp.result_type(leaf))
-                ok = jnp.isfinite(leaf)
-                if valid is not None and valid.dtype == jnp.bool_ and valid.ndim and \
-                        leaf.shape[: valid.ndim] == valid.shape:
-                    ok = ok & valid.reshape(valid.shape + (1,) * (leaf.ndim - valid.ndim))
-                total = total + jnp.sum(jnp.where(ok, leaf, 0.0) * w)
-            return total
+            return sum((jnp.sum(jnp.where(ok, leaf, 0.0) * w) for leaf, w, ok in _output_weights(y)), 0.0)
 
         xf = [leaves[i] for i in fl]
         try:
@@ -827,6 +873,30 @@ def _jit(f):
     import jax
 
     return jax.jit(f, compiler_options=STAGE_COMPILER_OPTIONS)
+
+
+def _output_weights(y) -> list:
+    """The random-weighted scalar that ``grad`` differentiates, as ``(leaf, w, ok)`` per inexact
+    output leaf: ``w`` standard-normal weights (PRNG key 7 folded with the leaf's index among
+    all leaves), ``ok`` the elements that count (finite, and marked by the output's ``valid``
+    mask where it applies). The scalar is ``sum(where(ok, leaf, 0) * w)``, the cotangent
+    ``where(ok, w, 0)``. One definition for the stage-by-stage grad and the chain compiled
+    whole (works traced or concrete)."""
+    import jax
+    import jax.numpy as jnp
+
+    key = jax.random.PRNGKey(7)
+    valid = getattr(y, "valid", None)
+    out = []
+    for j, leaf in enumerate(jax.tree_util.tree_leaves(y)):
+        if not jnp.issubdtype(jnp.result_type(leaf), jnp.inexact):
+            continue
+        w = jax.random.normal(jax.random.fold_in(key, j), jnp.shape(leaf), dtype=jnp.result_type(leaf))
+        ok = jnp.isfinite(leaf)
+        if valid is not None and valid.dtype == jnp.bool_ and valid.ndim and leaf.shape[: valid.ndim] == valid.shape:
+            ok = ok & valid.reshape(valid.shape + (1,) * (leaf.ndim - valid.ndim))
+        out.append((leaf, w, ok))
+    return out
 
 
 def _avals(tree) -> tuple:
@@ -857,6 +927,29 @@ def _vjp_program(f, tdef, fl: tuple):
         return pull([jnp.asarray(c, dtype=jnp.result_type(p)) for c, p in zip(ct, ys)])
 
     return prog
+
+
+# documented -inf outputs: op -> (parameter, value) under which the op writes -inf as "no data"
+# (the op's docstring says so); only -inf is explained, NaN or +inf still fail
+DOCUMENTED_NEG_INF = {
+    "tsdf_fuse": ("fill_holes", False),   # unobserved voxels are -inf with fill_holes=False
+}
+# ops whose Image output documents NaN where the value is undefined (an Image has no flag);
+# only NaN is explained, an inf still fails
+DOCUMENTED_NAN = frozenset({
+    "sobel_dir",   # "NaN where the gradient is zero up to rounding (a flat area); mask it with sobel_amp"
+})
+
+
+def _declared_batch(spec, params) -> tuple:
+    """The output batch shape an op declares: ``()``, or ``(max_instances,)`` for an op with a
+    static ``max_instances`` parameter (it returns that many instance slots, best first, as
+    ``generalised_hough3d`` documents)."""
+    if "max_instances" in spec.params:
+        n = dict(params).get("max_instances", spec.params["max_instances"])
+        if isinstance(n, int):
+            return (n,)
+    return ()
 
 
 def _n_found(x) -> int | None:

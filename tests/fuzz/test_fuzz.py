@@ -19,7 +19,7 @@ from fsjax import Contour, Image, Region
 from fsjax.registry import register
 
 PLANTED = ("planted_wrong_sort", "planted_odd_index", "planted_recompile", "planted_overflow",
-           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs", "planted_match_nan")
+           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs", "planted_match_nan", "planted_instances")
 
 
 def _plant():
@@ -66,6 +66,15 @@ def _plant():
         nan = jnp.full((), jnp.nan, img.data.dtype)
         return fsjax.Match3D(jnp.full((3, 3), nan), jnp.full((3,), nan), nan,
                              jnp.asarray(flag), jnp.asarray(0 if flag else 1, jnp.int32))
+
+    @register(family="planted", takes=Image, gives=fsjax.Match3D)
+    def planted_instances(img: Image, *, max_instances: int = 2, extra: int = 0) -> fsjax.Match3D:
+        """Instance slots as generalised_hough3d returns them: batch (max_instances,); ``extra``
+        adds slots beyond the declared number (a contract break)."""
+        n = max_instances + extra
+        z = jnp.zeros((n,), img.data.dtype)
+        return fsjax.Match3D(jnp.broadcast_to(jnp.eye(3, dtype=z.dtype), (n, 3, 3)), jnp.zeros((n, 3), z.dtype),
+                             z + 1, jnp.ones((n,), bool), jnp.zeros((n,), jnp.int32))
 
     @register(family="planted", takes=Image, gives=Image)
     def planted_jit_differs(img: Image) -> Image:
@@ -147,6 +156,114 @@ def test_stage_programs_repeat_across_chains(planted):
     assert o3.times["compiles"] >= staged_compiles + 2  # the whole chain: at least jit(vmap) and grad
 
 
+def test_prefix_results_reused_and_bugs_after_them_still_caught(planted):
+    """A chain that extends an earlier chain's prefix (the generator's reuse phase) takes the
+    prefix's eager results and stage-program batches instead of running them again; the stage
+    after the prefix runs every way, so a planted bug there is caught in its class, and the
+    grad way still runs the whole chain (its cotangent depends on the last stage)."""
+    _, specs = planted
+    runner = fz.Runner(specs)
+    g = {"op": "gaussian", "a": 0.2, "b": None, "params": {}, "slot": 0}
+
+    def chain(*ops):
+        return fz.Chain.from_json({"input": {"sort": "Image", "kind": "scene", "size": [7, 6], "dtype": "float64",
+                                             "variant": 0},
+                                   "stages": [g] + [{"op": op, "a": None, "b": None, "params": {}, "slot": 0}
+                                                    for op in ops]})
+
+    assert runner.run(chain("mean")).status == "ok"
+    assert runner.stats["eager_hits"] == 0 and runner.stats["staged_prefix_hits"] == 0
+    grads = runner.stats["grad_calls"]
+    o = runner.run(chain("planted_nan_grad"))
+    assert runner.stats["eager_hits"] == 1 and runner.stats["staged_prefix_hits"] == 1  # the gaussian stage
+    assert (o.status, o.cls, o.op, o.stage) == ("failed", "GRADNAN", "planted_nan_grad", 1), o
+    assert runner.stats["grad_calls"] > grads
+    o = runner.run(chain("planted_jit_differs"))
+    assert runner.stats["eager_hits"] == 2
+    assert (o.status, o.cls, o.op, o.stage) == ("failed", "MISMATCH", "planted_jit_differs", 1), o
+    o = runner.run(chain("planted_wrong_sort"))
+    assert (o.status, o.cls, o.op) == ("failed", "CONTRACT", "planted_wrong_sort"), o
+
+
+def test_prefix_from_a_failed_chain_after_a_release_is_not_a_recompile(planted, monkeypatch):
+    """The fourth full run's false RECOMPILE (vesselness3d, eager): a prefix stored by a chain
+    that failed later (so its eager recompile check never ran), reused after the compiled
+    programs were released; the check now calls such a stage once before the checked call."""
+    import fsjax._cache as fc
+
+    _, specs = planted
+    runner = fz.Runner(specs, grad=False)
+    g = {"op": "gaussian", "a": 0.3, "b": None, "params": {}, "slot": 0}
+
+    def chain(op):
+        return fz.Chain.from_json({"input": {"sort": "Image", "kind": "scene", "size": [5, 5], "dtype": "float64",
+                                             "variant": 0},
+                                   "stages": [g, {"op": op, "a": None, "b": None, "params": {}, "slot": 0}]})
+
+    o = runner.run(chain("planted_wrong_sort"))
+    assert (o.cls, o.stage) == ("CONTRACT", 1), o
+    monkeypatch.setattr(fc, "near_map_limit", lambda: True)
+    assert runner.release_if_needed()
+    o = runner.run(chain("mean"))
+    assert runner.stats["eager_hits"] == 1
+    assert o.status == "ok", o
+
+
+def test_coverage_phase_then_draws_with_replacement():
+    """With a DrawState, every op is drawn once (at the canonical size, an op not drawn yet
+    first) before any chain extends an earlier prefix; after that ops repeat, chains reuse
+    prefixes, and (op, sort, size, dtype) combinations drawn before weigh more."""
+    import random
+
+    from fsjax.fuzz._gen import SIZES, DrawState
+
+    gen = [fsjax.get_op(n) for n in ("gaussian", "otsu", "mean", "region_not", "boundary", "sobel_amp")]
+    graph = fz.SortGraph(gen, fz.pool_sorts(gen))
+    rng, state = random.Random(1), DrawState()
+    chains = []
+    while not state.covered:
+        chains.append(fz.generate_chain(graph, rng, 4, state))
+        assert all(c.inp["size"] == SIZES[0] for c in chains)   # canonical size while covering
+    n_cover = len(chains)
+    assert set(state.uses) == {s.name for s in gen}
+    stages_cover = sum(len(c.stages) for c in chains)
+    assert stages_cover <= 2 * len(gen)   # the null (least-used-first, 1/(1+u)^2) repeats more
+    later = [fz.generate_chain(graph, rng, 4, state) for _ in range(60)]
+    reused = sum(1 for j, c in enumerate(later) if any(
+        c.inp == p.inp and c.stages[:k] == p.stages[:k] for p in chains + later[:j]
+        for k in range(1, min(len(c.stages), len(p.stages) + 1))))
+
+    print(f"coverage phase {n_cover} chains ({stages_cover} stages for {len(gen)} ops); {reused} of 60 later "
+          f"chains extend an earlier prefix")
+    assert reused >= 15
+
+
+def test_reuse_draws_fewer_distinct_stage_programs_than_the_null():
+    """Over the whole registry (generation only, nothing runs), 200 chains drawn with the
+    coverage phase and reuse need far fewer distinct (op, running sort, size, dtype) stage
+    combinations, i.e. compiled programs, than the null (least-used-first throughout, every
+    size): 275 distinct in 454 stages against 386 in 508 (seed 0, printed)."""
+    import random
+
+    from fsjax.fuzz._gen import DrawState
+
+    specs = fsjax.list_ops()
+    graph = fz.SortGraph(specs, fz.pool_sorts(specs))
+
+    def distinct(cs):
+        keys = {(st.op, graph.sorts_after(c.inp["sort"], c.stages[:k]), c.inp["size"], c.inp["dtype"])
+                for c in cs for k, st in enumerate(c.stages)}
+        return len(keys), sum(len(c.stages) for c in cs)
+
+    rng, state = random.Random(0), DrawState()
+    ours = distinct([fz.generate_chain(graph, rng, 6, state) for _ in range(200)])
+    rng, uses = random.Random(0), {}
+    null = distinct([fz.generate_chain(graph, rng, 6, uses) for _ in range(200)])
+    print(f"distinct stage combinations in 200 chains: {ours[0]} of {ours[1]} stages (null {null[0]} of {null[1]})")
+    assert state.covered   # every op drawn
+    assert ours[0] < 0.85 * null[0]
+
+
 def test_programs_released_near_the_map_limit(planted, monkeypatch):
     """Past half of vm.max_map_count the runner drops its compiled programs (the second full run
     died at the limit: "Failed to materialize symbols"); the next chain compiles again, cleanly."""
@@ -179,6 +296,18 @@ def test_record_valid_flag_explains_nan(planted):
     assert o.status == "ok", o
     o = runner.run(_chain(["planted_match_nan"], size=(4, 4), params={"planted_match_nan": {"flag": True}}))
     assert (o.status, o.cls, o.op) == ("failed", "NONFINITE", "planted_match_nan"), o
+
+
+def test_instance_batch_declared_by_max_instances(planted):
+    """An op with a static ``max_instances`` declares an output batch of that many slots
+    (generalised_hough3d, reported CONTRACT in the fourth full run); more slots are still a
+    CONTRACT break."""
+    runner, _ = planted
+    o = runner.run(_chain(["planted_instances"], size=(4, 4), params={"planted_instances": {"max_instances": 3}}))
+    assert o.status == "ok", o
+    o = runner.run(_chain(["planted_instances"], size=(4, 4), params={"planted_instances": {"extra": 1}}))
+    assert (o.status, o.cls, o.op) == ("failed", "CONTRACT", "planted_instances"), o
+    assert "expected (2,)" in o.message
 
 
 def test_all_nan_refused_at_the_door(planted):
@@ -238,8 +367,8 @@ def test_generated_chains_type_correct_and_report(planted, tmp_path):
 # the bounded fuzz CI runs: a fixed seed over the whole registry
 # ---------------------------------------------------------------------------
 
-BOUNDED_CHAINS = 20
-BOUNDED_LENGTH = 3
+BOUNDED_CHAINS = 16
+BOUNDED_LENGTH = 4
 BOUNDED_SEED = 2026
 
 
@@ -247,11 +376,12 @@ BOUNDED_SEED = 2026
 def test_bounded_fuzz_whole_registry():
     """A fixed-seed fuzz over every registered op fails on any blocking class.
 
-    Sized for the suite: about a minute of CPU time on the 2-core development machine with
-    per-stage compiled programs (40 chains took 123 s of CPU time there, 550 s of wall time
-    under a load average of 13; docs/fuzz.md). A short run reuses few stage programs: the
-    generator draws every op once before it repeats one. The full run is in docs/fuzz.md.
-    Each failure's replayable chain is in the assertion message.
+    Sized for the suite: cold (CI's compile cache starts empty), these 16 chains of length <= 4
+    took 81 s of CPU time (145 s wall) on the 2-core development machine at load average 9
+    (docs/fuzz.md). All of them are in the generator's coverage phase (every stage a new op on
+    the canonical size), which is compile-bound: the reuse phase, 3x faster, starts after about
+    110 chains, beyond a CI budget. Chain 2 also runs compiled whole. Each failure's replayable
+    chain is in the assertion message.
     """
     run = fz.fuzz(BOUNDED_CHAINS, BOUNDED_LENGTH, seed=BOUNDED_SEED, minimise_failures=False)
     print(f"bounded fuzz: {len(run.results)} chains in {run.seconds:.0f} s ({run.cpu_seconds:.0f} s CPU), "

@@ -547,7 +547,9 @@ def _li_level(x, tolerance, max_iter: int):
     if tolerance is None:
         s = jnp.sort(v)
         d = s[1:] - s[:-1]
-        tol = jnp.min(jnp.where(d > 0, d, jnp.inf)) / 2
+        # a single pixel has no gap (an empty min): the tolerance is then inf, and the
+        # constant-image rule below gives NaN (the chain fuzzer's ncc_map -> li, a 1 x 1 map)
+        tol = jnp.min(jnp.where(d > 0, d, jnp.inf), initial=jnp.inf) / 2
     else:
         tol = jnp.asarray(tolerance, dt)
     t0 = jnp.mean(v) - mn
