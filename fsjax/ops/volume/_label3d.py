@@ -102,33 +102,32 @@ def neighbour_min3d(g, connectivity: int, fill):
 _BLOCK = {26: (2, 2, 2), 18: (1, 2, 2), 6: (1, 1, 2)}
 
 
-def _shift3(x, o, fill):
-    """``y[i] = x[i + o]`` for an offset ``o`` in ``{-1, 0, 1}^3``, ``fill`` outside."""
-    p = jnp.pad(x, 1, constant_values=fill)
-    return p[1 + o[0]:1 + o[0] + x.shape[0], 1 + o[1]:1 + o[1] + x.shape[1], 1 + o[2]:1 + o[2] + x.shape[2]]
-
-
 @functools.cache
-def _block_edges(connectivity: int):
-    """For each forward block offset ``o`` (the first nonzero entry positive), the voxel pairs
-    ``(p, q)`` (positions inside a block) that join block ``b`` to block ``b + o``: voxel ``p`` of
-    ``b`` and voxel ``q`` of ``b + o`` are neighbours under ``connectivity``."""
+def _block_terms(connectivity: int):
+    """The adjacency of blocks as terms ``(o, own, nb)``: block ``b`` is joined to block ``b + o``
+    when one of its voxels at the positions ``own`` and one of ``b + o``'s voxels at the positions
+    ``nb`` (indices into the raster-ordered positions inside a block) are both foreground. Every
+    voxel pair that neighbours under ``connectivity`` across the two blocks is covered; where all
+    facing pairs touch (every offset under 26-connectivity) one term per offset suffices."""
     bs = _BLOCK[connectivity]
     order = {6: 1, 18: 2, 26: 3}[connectivity]
     pos = [(a, b, c) for a in range(bs[0]) for b in range(bs[1]) for c in range(bs[2])]
-    out = []
+    terms = []
     for o in [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]:
-        if o <= (0, 0, 0):
+        if o == (0, 0, 0):
             continue
         pairs = []
-        for p in pos:
-            for q in pos:
+        for i, p in enumerate(pos):
+            for j, q in enumerate(pos):
                 v = [o[k] * bs[k] + q[k] - p[k] for k in range(3)]
                 if max(abs(t) for t in v) <= 1 and sum(t != 0 for t in v) <= order:
-                    pairs.append((p, q))
-        if pairs:
-            out.append((o, pairs))
-    return bs, pos, out
+                    pairs.append((i, j))
+        own, nb = sorted({i for i, _ in pairs}), sorted({j for _, j in pairs})
+        if pairs and len(pairs) == len(own) * len(nb):
+            terms.append((o, tuple(own), tuple(nb)))
+        else:   # one term per own voxel: it joins when any of its neighbours across is foreground
+            terms += [(o, (i,), tuple(j for ii, j in pairs if ii == i)) for i in own]
+    return bs, pos, terms
 
 
 def _block_union_find(fg, connectivity: int):
@@ -140,27 +139,32 @@ def _block_union_find(fg, connectivity: int):
     ``(d, h, w)`` array per position inside a block, raster order), ``dims`` the padded
     voxel shape; and the number of rounds.
     """
-    bs, pos, edges = _block_edges(connectivity)
+    bs, pos, terms = _block_terms(connectivity)
     D, H, W = fg.shape
     Dp, Hp, Wp = (-(-D // bs[0]) * bs[0], -(-H // bs[1]) * bs[1], -(-W // bs[2]) * bs[2])
     m = jnp.pad(fg, ((0, Dp - D), (0, Hp - H), (0, Wp - W)))
     sub = [m[p[0]::bs[0], p[1]::bs[1], p[2]::bs[2]] for p in pos]
     d, h, w = sub[0].shape
-    # adjacency of the blocks, both directions of every forward offset, one bit each
-    bits = jnp.zeros((d, h, w), jnp.uint32)
-    dirs = []
-    for o, pairs in edges:
-        ps, qs = sorted({p for p, _ in pairs}), sorted({q for _, q in pairs})
-        if len(pairs) == len(ps) * len(qs):   # every facing voxel pair touches: any-and-any
-            anyof = lambda pp: functools.reduce(jnp.logical_or, [sub[pos.index(t)] for t in pp])  # noqa: E731
-            fwd = anyof(ps) & _shift3(anyof(qs), o, False)
-        else:
-            fwd = functools.reduce(jnp.logical_or, [sub[pos.index(p)] & _shift3(sub[pos.index(q)], o, False)
-                                                    for p, q in pairs])
-        neg = tuple(-t for t in o)
-        for oo, mm in ((o, fwd), (neg, _shift3(fwd, neg, False))):
-            bits = bits | (mm.astype(jnp.uint32) << len(dirs))
-            dirs.append(oo)
+    # adjacency of the blocks, one bit per term, built in one loop (one compiled body)
+    P, T = len(pos), len(terms)
+    assert T <= 32, T   # one bit each in a uint32 (26 / 32 / 10 terms for 26 / 18 / 6)
+    sel_own = np.zeros((T, P), bool)
+    sel_nb = np.zeros((T, P), bool)
+    for t, (_, own, nb) in enumerate(terms):
+        sel_own[t, list(own)] = True
+        sel_nb[t, list(nb)] = True
+    sel_own, sel_nb = jnp.asarray(sel_own), jnp.asarray(sel_nb)
+    offs = jnp.asarray([o for o, _, _ in terms], jnp.int32) + 1
+    stack = jnp.stack(sub)                                        # (P, d, h, w)
+    padded = jnp.pad(stack, ((0, 0), (1, 1), (1, 1), (1, 1)))
+
+    def term_bit(t, bits):
+        own = jnp.any(stack & sel_own[t][:, None, None, None], axis=0)
+        nbs = lax.dynamic_slice(padded, (jnp.int32(0), offs[t, 0], offs[t, 1], offs[t, 2]), (P, d, h, w))
+        nb = jnp.any(nbs & sel_nb[t][:, None, None, None], axis=0)
+        return bits | ((own & nb).astype(jnp.uint32) << t.astype(jnp.uint32))
+
+    bits = lax.fori_loop(0, T, term_bit, jnp.zeros((d, h, w), jnp.uint32))
     kz, ky, kx = jnp.meshgrid(jnp.arange(d, dtype=jnp.int32) * bs[0], jnp.arange(h, dtype=jnp.int32) * bs[1],
                               jnp.arange(w, dtype=jnp.int32) * bs[2], indexing="ij")
     k0 = (kz * Hp + ky) * Wp + kx
@@ -176,8 +180,6 @@ def _block_union_find(fg, connectivity: int):
         x = r - y * Wp
         return ((z // bs[0]) * h + y // bs[1]) * w + x // bs[2]
 
-    offs = jnp.asarray(dirs, jnp.int32) + 1
-
     def neighbour_min(g):
         p = jnp.pad(g, 1, constant_values=_INT_MAX)
 
@@ -185,7 +187,7 @@ def _block_union_find(fg, connectivity: int):
             nb = lax.dynamic_slice(p, (offs[k, 0], offs[k, 1], offs[k, 2]), (d, h, w))
             return jnp.minimum(out, jnp.where((bits >> k.astype(jnp.uint32)) & 1, nb, _INT_MAX))
 
-        return lax.fori_loop(0, len(dirs), tap, g).reshape(-1)
+        return lax.fori_loop(0, T, tap, g).reshape(-1)
 
     def jump(f):
         return f.at[node_of(f)].get(mode="promise_in_bounds")
