@@ -54,11 +54,16 @@ NOTES = [
     "  parabolas per axis); the parabola passes are sequential `lax.scan`s whose stack pops are",
     "  `while_loop`s, which XLA runs slower than SciPy's C. Under `vmap` the pops of the batch",
     "  members run in lock-step, so the batched ratio is worse than the single one.",
-    "* **label**: Shiloach-Vishkin union-find rounds (5-6 rounds on these blobs), each a full-volume",
-    "  gather, separable 3x3x3 minimum and scatter-min, against SciPy's and scikit-image's single",
-    "  sequential two-pass scans: several times slower single. A batch is labelled as one volume",
-    "  (members stacked along z with a background slice between them), so it costs about B single",
-    "  calls plus the rounds of its slowest member (1.5x faster than `vmap` of the loop, measured).",
+    "* **label**: Shiloach-Vishkin union-find rounds on the graph of 2x2x2 blocks (any two voxels of",
+    "  a 2x2x2 cube are 26-neighbours, so a block's foreground is one piece; 8x fewer nodes than",
+    "  voxels), each round a gather, 26 masked neighbour taps in one loop and a scatter-min over the",
+    "  blocks; the labels are ranked by one cumulative sum over the voxels. Against SciPy's and",
+    "  scikit-image's single sequential two-pass scans. The blocks (commit 4ffbe78) against one node",
+    "  per voxel (commit 0ae1fc4), both compiled in one process, round-robin medians of 7, x64 on,",
+    "  load 1.4: 64^3 11.6 -> 5.1 ms (SciPy 4.7), 128^3 101.3 -> 54.3 ms (SciPy 36.6): ratio to",
+    "  SciPy 2.8 -> 1.5 at 128^3; compile 0.8 -> 1.6 s CPU. A batch is labelled as one volume",
+    "  (members stacked along z with a background block layer between them), so it costs about B",
+    "  single calls plus the rounds of its slowest member.",
 ]
 
 
