@@ -126,6 +126,22 @@ def _floor(x, spacing):
     return 1e3 * jnp.finfo(x.dtype).eps * jnp.max(jnp.abs(x)) / min(spacing)
 
 
+def check_gradient_match(op: str, scene, template, min_score, sigma, model_contrast, min_contrast, *,
+                         sigma_positive: bool = False):
+    """The argument checks shared by the gradient-field matchers (``shape_locate3d``,
+    ``shape_index_locate3d``); returns ``(template shape, dtype)``."""
+    _, T, dt = check_pair(op, scene, template)
+    check_range(op, "min_score", min_score, -1.0, 1.0)
+    if not is_concrete(sigma):
+        raise TypeError(f"{op}: argument 'sigma' must be a static float")
+    check_range(op, "sigma", sigma, 0.0, 8.0, lo_open=sigma_positive)
+    check_range(op, "model_contrast", model_contrast, 0.0, 1.0, lo_open=True, hi_open=True)
+    check_range(op, "min_contrast", min_contrast, 0.0, 1.0, hi_open=True)
+    if min(T) < 3:
+        raise ValueError(f"{op}: argument 'template' of shape {T} is too small (need >= 3 voxels per axis)")
+    return T, dt
+
+
 @functools.partial(jax.jit, static_argnames=("sigma", "spacing", "polarity"))
 def _shape3d_core(x, t, model_contrast, min_contrast, *, sigma: float, spacing, polarity: str):
     D, H, W = x.shape
@@ -210,16 +226,8 @@ def shape_locate3d(scene: Volume, template: Volume, /, *, min_score: float = 0.7
       ([3.0, 2.0, 5.0], 1.0)
     """
     op = "shape_locate3d"
-    _, T, dt = check_pair(op, scene, template)
-    check_range(op, "min_score", min_score, -1.0, 1.0)
+    T, dt = check_gradient_match(op, scene, template, min_score, sigma, model_contrast, min_contrast)
     pol = check_choice(op, "polarity", polarity, _POLARITY)
-    if not is_concrete(sigma):
-        raise TypeError(f"{op}: argument 'sigma' must be a static float")
-    check_range(op, "sigma", sigma, 0.0, 8.0)
-    check_range(op, "model_contrast", model_contrast, 0.0, 1.0, lo_open=True, hi_open=True)
-    check_range(op, "min_contrast", min_contrast, 0.0, 1.0, hi_open=True)
-    if min(T) < 3:
-        raise ValueError(f"{op}: argument 'template' of shape {T} is too small (need >= 3 voxels per axis)")
     off, s, ok = _shape3d_core(scene.data.astype(dt), template.data.astype(dt), jnp.asarray(model_contrast, dt),
                                jnp.asarray(min_contrast, dt), sigma=float(sigma),
                                spacing=tuple(float(v) for v in scene.spacing), polarity=pol)

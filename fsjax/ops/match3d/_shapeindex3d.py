@@ -41,14 +41,13 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from ..._checks import check_range, check_static_int, is_concrete
+from ..._checks import check_static_int
 from ...registry import LinKnob, register
 from ...types import Match3D, Volume
-from ._shape3d import _floor, gradient3
+from ._shape3d import _floor, check_gradient_match, gradient3
 from ._shared3d import (
     _INVALID,
     _NOT_FOUND,
-    check_pair,
     make_match,
     neighbourhood3,
     newton_peak3,
@@ -182,16 +181,9 @@ def shape_index_locate3d(scene: Volume, template: Volume, /, *, min_score: float
       ([9.0, 11.0, 1.0], True)
     """
     op = "shape_index_locate3d"
-    _, T, dt = check_pair(op, scene, template)
-    check_range(op, "min_score", min_score, -1.0, 1.0)
-    if not is_concrete(sigma):
-        raise TypeError(f"{op}: argument 'sigma' must be a static float")
-    check_range(op, "sigma", sigma, 0.0, 8.0, lo_open=True)
+    T, dt = check_gradient_match(op, scene, template, min_score, sigma, model_contrast, min_contrast,
+                                 sigma_positive=True)
     nb = check_static_int(op, "bins", bins, lo=3, hi=16)
-    check_range(op, "model_contrast", model_contrast, 0.0, 1.0, lo_open=True, hi_open=True)
-    check_range(op, "min_contrast", min_contrast, 0.0, 1.0, hi_open=True)
-    if min(T) < 3:
-        raise ValueError(f"{op}: argument 'template' of shape {T} is too small (need >= 3 voxels per axis)")
     off, s, ok = _si3d_core(scene.data.astype(dt), template.data.astype(dt), jnp.asarray(model_contrast, dt),
                             jnp.asarray(min_contrast, dt), sigma=float(sigma),
                             spacing=tuple(float(v) for v in scene.spacing), bins=nb)
