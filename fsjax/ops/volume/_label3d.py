@@ -15,13 +15,16 @@ Conventions:
   the numbering order become background, ``LabelVolume.truncated`` is True and
   ``count = min(true count, capacity)``. ``regionprops3d`` measures at most its own
   ``capacity`` labels and sets ``RegionProps.truncated`` when labels were left out.
-* Algorithm (exact, jittable, ``vmap``-able): a Shiloach-Vishkin style union-find over
-  the voxels inside ``lax.while_loop``, as the 2-D ``label`` does on its blocks: each round
-  hooks every voxel's parent to the smallest grandparent among its foreground neighbours
-  (a scatter-min) and then jumps pointers twice. Pointers only decrease and stay inside
-  the component, so the loop stops at its fixed point (every voxel points at the smallest
-  flat index of its component) with no iteration cap to hit. Roots are ranked by an exact
-  cumulative sum.
+* Algorithm (exact, jittable, ``vmap``-able): a Shiloach-Vishkin style union-find inside
+  ``lax.while_loop`` on a graph of blocks, as the 2-D ``label`` does: the nodes are blocks
+  whose foreground is always one piece (2x2x2 for 26-connectivity: any two voxels of a
+  2x2x2 cube are 26-neighbours; 1x2x2 for 18, 1x1x2 for 6), two blocks are joined when a
+  foreground voxel of one neighbours a foreground voxel of the other. A block's key is the
+  flat index of its first foreground voxel. Each round hooks every root to the smallest
+  grandparent key among its joined neighbours (a scatter-min) and then jumps pointers
+  twice. Pointers only decrease and stay inside the component, so the loop stops at its
+  fixed point (every block points at the smallest voxel index of its component) with no
+  iteration cap to hit. Roots are ranked by an exact cumulative sum over the voxels.
 * Nothing here is differentiable (a threshold in, integers out).
 """
 
