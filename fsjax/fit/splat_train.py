@@ -305,6 +305,37 @@ def _loss_fn(y, args):
     return loss, (out.projected.visible, out.overflow, out.pairs)
 
 
+# Compile events seen in this process (JAX's backend compiles and persistent-cache loads): a
+# training step during which the count changes is a compiling step, reported apart.
+_COMPILES = [0]
+_LISTENING = []
+
+
+def _count_compiles(name, *_a, **_kw):
+    if name in ("/jax/core/compile/backend_compile_duration", "/jax/compilation_cache/cache_hits"):
+        _COMPILES[0] += 1
+
+
+def _listen_for_compiles():
+    if not _LISTENING:
+        jax.monitoring.register_event_duration_secs_listener(_count_compiles)
+        jax.monitoring.register_event_listener(_count_compiles)
+        _LISTENING.append(True)
+
+
+@eqx.filter_jit
+def _train_step(solver, y, state, images, cams, bg, view, valid_j, B, statics):
+    """One optimiser step on training view ``view``. Module level and free of closures, so a
+    second :func:`train_splats` on data of the same shapes reuses the compiled program (the
+    step was a closure over the call's arrays and compiled again on every call: 5.7 s)."""
+    lam, dist_weight, dist_normalise, tile_size, chunk = statics
+    cam = jax.tree_util.tree_map(lambda a: a[view], cams)
+    y = dict(y, uv_offset=jnp.zeros_like(y["uv_offset"]))
+    args = (images[view], cam, valid_j, bg, lam, dist_weight, dist_normalise, tile_size, B, chunk)
+    y2, state2, aux = solver.step(_loss_fn, y, args, {}, state, frozenset())
+    return y2, state2, aux, state2.f
+
+
 def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: int = 8000,
                  iterations: int = 2000, densify_every: int = 100, densify_from: int = 100,
                  densify_until: int | None = None, grad_threshold: float | None = None,
@@ -369,7 +400,7 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     ext = data.extent
     lrs = {"means": lr_means * ext, "log_scales": lr_scales, "quats": lr_quats, "opacity_logits": lr_opacity,
            "colors": lr_colors, "uv_offset": 0.0}
-    tx = _grouped_adam(lrs, decay={"means": (lr_means_final / lr_means, iterations)})
+    tx = _grouped_adam(lrs, decay={"means": (lr_means_final / lr_means, iterations)}, dtype=dtype)
     solver = optx.OptaxMinimiser(tx, rtol=0.0, atol=0.0)
     images = data.images.astype(dtype)
     cams = jax.tree_util.tree_map(lambda a: a.astype(dtype) if jnp.issubdtype(a.dtype, jnp.floating) else a,
@@ -392,19 +423,14 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     aux_struct = None
     state = solver.init(_loss_fn, y, a0, {}, f_struct, aux_struct, frozenset())
 
-    @eqx.filter_jit
-    def step(y, state, view, valid_j, B):
-        y = dict(y, uv_offset=jnp.zeros_like(y["uv_offset"]))
-        args = args_for(view, valid_j, B)
-        y2, state2, aux = solver.step(_loss_fn, y, args, {}, state, frozenset())
-        return y2, state2, aux, state2.f
+    statics = (lam, dist_weight, dist_normalise, tile_size, chunk)
 
     order = np.asarray(jax.random.permutation(kview, np.tile(data.train, iterations // len(data.train) + 1)))
     losses, overflows, counts, times, demand, cpu_times = [], [], [], [], [], []
-    compiled = {B}
     gacc = np.zeros(N)
     gden = np.zeros(N)
     rng_split = np.random.default_rng(np.asarray(jax.random.key_data(ksplit)).ravel()[-1].item())
+    _listen_for_compiles()
     it = range(iterations)
     if progress:
         from tqdm.auto import tqdm
@@ -413,14 +439,16 @@ def train_splats(key, data: MultiViewData, *, n_init: int = 2000, max_splats: in
     for s in it:
         t0 = time.perf_counter()
         c0 = time.process_time()
-        fresh = s == 0
+        fresh = False
         while True:
-            y1, state1, (vis, ov, npairs), f = step(y, state, jnp.asarray(order[s]), jnp.asarray(valid), B)
+            n_compiles = _COMPILES[0]
+            y1, state1, (vis, ov, npairs), f = _train_step(solver, y, state, images, cams, bg,
+                                                           jnp.asarray(order[s]), jnp.asarray(valid), B,
+                                                           statics)
+            fresh = fresh or _COMPILES[0] != n_compiles
             if int(npairs) <= B:
                 break
             B = _bucket(int(npairs))  # grow the pair buffer and re-run this step
-            fresh = fresh or B not in compiled
-            compiled.add(B)
         y, state = y1, state1
         f = float(f)
         dt_s = time.perf_counter() - t0
@@ -459,36 +487,55 @@ class _GroupedAdamState(eqx.Module):
     nu: Any
 
 
-def _grouped_adam(lrs: dict, *, decay: dict, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-15):
-    """Adam with one learning rate per top-level key of a dict of arrays (optional exponential
-    decay ``lr * ratio^(t / steps)``); a key with ``lr == 0`` passes its raw gradient through
-    (the ``uv_offset`` read-out of the screen-space gradient). Written as a plain
-    ``optax.GradientTransformation``: ``optax.multi_transform`` closures cannot be converted by
-    ``OptaxMinimiser``."""
-
-    def init_fn(params):
+class _GroupedAdamInit(eqx.Module):
+    def __call__(self, params):
         z = {k: jnp.zeros_like(v) for k, v in params.items()}
         return _GroupedAdamState(jnp.zeros((), jnp.int32), z, dict(z))
 
-    def update_fn(grads, state, params=None, **extra):
+
+class _GroupedAdamUpdate(eqx.Module):
+    """The update of :func:`_grouped_adam`: learning rates and decay as arrays (traced, so a new
+    rate does not recompile the training step), the raw-gradient keys static."""
+
+    lrs: dict
+    decay: dict
+    raw: tuple = eqx.field(static=True)
+    b1: float = eqx.field(static=True, default=0.9)
+    b2: float = eqx.field(static=True, default=0.999)
+    eps: float = eqx.field(static=True, default=1e-15)
+
+    def __call__(self, grads, state, params=None, **extra):
+        b1, b2 = self.b1, self.b2
         c = state.count + 1
         mu = {k: b1 * state.mu[k] + (1 - b1) * g for k, g in grads.items()}
         nu = {k: b2 * state.nu[k] + (1 - b2) * g * g for k, g in grads.items()}
         out = {}
         for k, g in grads.items():
-            lr = lrs[k]
-            if lr == 0.0:
+            if k in self.raw:
                 out[k] = g
                 continue
-            if k in decay:
-                ratio, steps = decay[k]
+            lr = self.lrs[k]
+            if k in self.decay:
+                ratio, steps = self.decay[k]
                 lr = lr * ratio ** (jnp.minimum(c, steps) / steps)
             mhat = mu[k] / (1 - b1**c)
             vhat = nu[k] / (1 - b2**c)
-            out[k] = (-lr * mhat / (jnp.sqrt(vhat) + eps)).astype(g.dtype)
+            out[k] = (-lr * mhat / (jnp.sqrt(vhat) + self.eps)).astype(g.dtype)
         return out, _GroupedAdamState(c, mu, nu)
 
-    return optax.GradientTransformation(init_fn, update_fn)
+
+def _grouped_adam(lrs: dict, *, decay: dict, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-15,
+                  dtype=jnp.float32):
+    """Adam with one learning rate per top-level key of a dict of arrays (optional exponential
+    decay ``lr * ratio^(t / steps)``); a key with ``lr == 0`` passes its raw gradient through
+    (the ``uv_offset`` read-out of the screen-space gradient). Written as a plain
+    ``optax.GradientTransformation`` (``optax.multi_transform`` closures cannot be converted by
+    ``OptaxMinimiser``) whose two functions are equinox modules: equal hyperparameters give an
+    equal (hashable) transformation, so the jitted training step is not compiled again."""
+    raw = tuple(k for k, v in lrs.items() if v == 0.0)
+    arr = {k: jnp.asarray(v, dtype) for k, v in lrs.items() if k not in raw}
+    dec = {k: (jnp.asarray(r, dtype), jnp.asarray(n, jnp.int32)) for k, (r, n) in decay.items()}
+    return optax.GradientTransformation(_GroupedAdamInit(), _GroupedAdamUpdate(arr, dec, raw, b1, b2, eps))
 
 
 def _densify_prune(y, state, valid, grad, thr, prune_opacity, big_scale, rng):
@@ -558,7 +605,7 @@ def evaluate_splats(g: Gaussians, data: MultiViewData, views=None, *, tile_size:
     views = data.test if views is None else views
     ps, ss, holes, thick, mde, ov = [], [], [], [], [], 0
     for vi in views:
-        cam = jax.tree_util.tree_map(lambda a: a[vi], data.cameras)
+        cam = jax.tree_util.tree_map(lambda a, vi=vi: a[vi], data.cameras)
         cam = jax.tree_util.tree_map(lambda a: a.astype(g.means.dtype) if jnp.issubdtype(a.dtype, jnp.floating)
                                      else a, cam)
         out = render_splats(g, cam, tile_size=tile_size, capacity=capacity)
