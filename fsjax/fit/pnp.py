@@ -287,11 +287,17 @@ def _ransac(key, X, uv, K, dist, thr, n_hyp, max_steps):
     b = jnp.argmin(costs)
     inl = err2(Rs[b], ts[b]) < thr * thr
     R0, t0 = _dlt(Xs, x, inl.astype(X.dtype))
-    R, t, it, conv = _refine(R0, t0, Xs, uvs, inl.astype(X.dtype), K, dist, max_steps)
-    inl = err2(R, t) < thr * thr
-    R, t, it2, conv = _refine(R, t, Xs, uvs, inl.astype(X.dtype), K, dist, max_steps)
-    inl = err2(R, t) < thr * thr
+
+    # refine on the inliers, re-select them, refine again: two passes of one loop, so the
+    # Levenberg-Marquardt solve is traced and compiled once (two calls compiled it twice)
+    def refine_pass(_, carry):
+        R, t, inl, it, _conv = carry
+        R, t, it_k, conv = _refine(R, t, Xs, uvs, inl.astype(X.dtype), K, dist, max_steps)
+        return R, t, err2(R, t) < thr * thr, it + jnp.asarray(it_k, jnp.int32), conv
+
+    R, t, inl, it, conv = jax.lax.fori_loop(0, 2, refine_pass,
+                                            (R0, t0, inl, jnp.asarray(0, jnp.int32), jnp.asarray(False)))
     n_in = jnp.sum(inl)
     reason = jnp.where(jnp.sum(finite) < 6, 1, jnp.where(_coplanar(Xs, finite.astype(X.dtype)), 2,
                                                          jnp.where(n_in < 6, 3, 0)))
-    return _finish(R, t, Xs, uvs, inl, K, dist, it + it2, conv, reason)
+    return _finish(R, t, Xs, uvs, inl, K, dist, it, conv, reason)
