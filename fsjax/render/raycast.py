@@ -22,6 +22,7 @@ face can still shadow at grazing light (the usual terminator artefact of flat fa
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -69,6 +70,13 @@ def _mt(o, d, v0, e1, e2, s_min):
     return s, u, v, ok
 
 
+def _check_mesh(mesh, fn: str):
+    if not isinstance(mesh, Mesh):
+        raise TypeError(f"{fn}(mesh=...): expected a Mesh, got {type(mesh).__name__}")
+    if mesh.faces.shape[0] == 0:
+        raise ValueError(f"{fn}(mesh=...): the mesh is empty (0 faces)")
+
+
 def _tri(mesh: Mesh, fn: str):
     if not isinstance(mesh, Mesh):
         raise TypeError(f"{fn}(mesh=...): expected a Mesh, got {type(mesh).__name__}")
@@ -102,11 +110,19 @@ def intersect(mesh: Mesh, origins, directions, *, s_min=0.0, chunk: int = 1024) 
         >>> float(h.s[0]), int(h.face_id[0]), float(h.u[0]), float(h.v[0])
         (2.0, 0, 0.25, 0.25)
     """
+    _check_mesh(mesh, "intersect")
+    dt = mesh.vertices.dtype
+    o = jnp.asarray(origins, dt).reshape(-1, 3)
+    d = jnp.asarray(directions, dt).reshape(-1, 3)
+    chunk = int(min(chunk, mesh.faces.shape[0]))
+    return _intersect(mesh, o, d, s_min, chunk)
+
+
+@functools.partial(jax.jit, static_argnames=("chunk",))
+def _intersect(mesh, o, d, s_min, chunk):
+    # jitted at module level: an eager lax.scan over a closure compiled again on every call
     v0, e1, e2, ok = _tri(mesh, "intersect")
-    o = jnp.asarray(origins, v0.dtype).reshape(-1, 3)
-    d = jnp.asarray(directions, v0.dtype).reshape(-1, 3)
     F = v0.shape[0]
-    chunk = int(min(chunk, F))
     nch = -(-F // chunk)
     pad = nch * chunk - F
     ids = jnp.arange(nch * chunk, dtype=jnp.int32)
@@ -151,11 +167,13 @@ def _basis(L):
     return a, jnp.cross(L, a)
 
 
+@functools.partial(jax.jit, static_argnames=("grid", "capacity", "pairs", "batch", "fn"))
 def _grid_occlusion(mesh, points, L, ignore_face, s_min, grid, capacity, pairs, batch, fn):
     """Any-hit of the parallel rays ``points + s * L`` through a grid binned along ``L``.
 
     Returns ``occluded (N,)``, ``incomplete (N,)``, ``overflow`` and the buffer sizes that
     would have held everything: the fullest cell's count and the total (triangle, cell) pairs.
+    Jitted at module level (its ``lax.map`` over a closure compiled again on every eager call).
     """
     grid = check_static_int(fn, "grid", grid, lo=1)
     capacity = check_static_int(fn, "capacity", capacity, lo=1)
@@ -260,7 +278,10 @@ def occluded_parallel(mesh: Mesh, points, direction, *, ignore_face=None, s_min=
         >>> [bool(x) for x in fsjax.render.occluded_parallel(m, pts, jnp.asarray([0.0, 0, 1])).occluded]
         [True, False]
     """
+    _check_mesh(mesh, "occluded_parallel")
+    grid = check_static_int("occluded_parallel", "grid", grid, lo=1)
     L = unit(jnp.asarray(direction, dtype=mesh.vertices.dtype), name="direction", fn="occluded_parallel")
+
     def run(cap, prs):
         return _grid_occlusion(mesh, points, L, ignore_face, s_min, grid, cap, prs, batch, "occluded_parallel")
 
@@ -316,18 +337,26 @@ def sun_visibility(mesh: Mesh, points, direction, *, angular_diameter_deg=0.53, 
         >>> [float(x) for x in vis]
         [0.0, 1.0]
     """
+    _check_mesh(mesh, "sun_visibility")
     dirs = sun_directions(direction, angular_diameter_deg=angular_diameter_deg, samples=samples)
     dirs = dirs.astype(mesh.vertices.dtype)
 
     grid = check_static_int("sun_visibility", "grid", grid, lo=1)
 
     def run(cap, prs):
-        def one(d):
-            return _grid_occlusion(mesh, points, d, ignore_face, s_min, grid, cap, prs, batch, "sun_visibility")
-
-        occ, inc, ovf, need_cap, need_pairs = jax.lax.map(one, dirs)
-        return occ, inc, jnp.sum(ovf).astype(jnp.int32), jnp.max(need_cap), jnp.max(need_pairs)
+        check_static_int("sun_visibility", "capacity", cap, lo=1)
+        return _sun_map(mesh, points, dirs, ignore_face, s_min, grid, cap, prs, batch)
 
     occ, inc, ovf = _occlusion_grown(run, capacity, pairs, "sun_visibility")
     vis = 1.0 - jnp.mean(occ.astype(dirs.dtype), axis=0)
     return vis, jnp.any(inc, axis=0), ovf
+
+
+@functools.partial(jax.jit, static_argnames=("grid", "cap", "prs", "batch"))
+def _sun_map(mesh, points, dirs, ignore_face, s_min, grid, cap, prs, batch):
+    """:func:`_grid_occlusion` over the sun's directions, in one module-level program."""
+    def one(d):
+        return _grid_occlusion(mesh, points, d, ignore_face, s_min, grid, cap, prs, batch, "sun_visibility")
+
+    occ, inc, ovf, need_cap, need_pairs = jax.lax.map(one, dirs)
+    return occ, inc, jnp.sum(ovf).astype(jnp.int32), jnp.max(need_cap), jnp.max(need_pairs)
