@@ -35,6 +35,7 @@ global illumination on dynamic scenes", SIGGRAPH 2006 course notes (SDF ambient 
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -523,6 +524,13 @@ def shadow_visibility(scene, points, normals, light_dir, *, light_angular_diamet
     off = t_max / 4e5 if offset is None else offset
     sin_rho = math.sin(math.radians(light_angular_diameter_deg) / 2.0)
     flat_p, flat_n = pts.reshape(-1, 3), nrm.reshape(-1, 3)
+    return _shadow(scene, flat_p, flat_n, light, off, sin_rho, min_step, t_max,
+                   shadow_steps=int(shadow_steps)).reshape(pts.shape[:-1])
+
+
+@functools.partial(jax.jit, static_argnames=("shadow_steps",))
+def _shadow(scene, flat_p, flat_n, light, off, sin_rho, min_step, t_max, *, shadow_steps):
+    """The march of :func:`shadow_visibility` as one module-level program (see :func:`_trace`)."""
 
     def one(p, n):
         ok = jnp.all(jnp.isfinite(p)) & jnp.all(jnp.isfinite(n))
@@ -531,7 +539,7 @@ def shadow_visibility(scene, points, normals, light_dir, *, light_angular_diamet
         v = _soft_shadow(scene, p + off * n, n, light, sin_rho, min_step, t_max, shadow_steps, min_step)
         return jnp.where(ok, v, jnp.nan)
 
-    return jax.vmap(one)(flat_p, flat_n).reshape(pts.shape[:-1])
+    return jax.vmap(one)(flat_p, flat_n)
 
 
 def orthographic_rays(R, t, width: int, height: int, pixel_size: float):
@@ -613,7 +621,20 @@ def trace_rays(scene, origins, directions, *, axis=None, light_dir=None, light_a
     shadow_min_step = t_max / 400.0 if shadow_min_step is None else shadow_min_step
     shadow_t_max = t_max if shadow_t_max is None else shadow_t_max
     sin_rho = math.sin(math.radians(light_angular_diameter_deg) / 2.0)
-    field = scene
+    out = _trace(scene, of, df, axis, light, t_min, t_max, tol, ao_spacing, ao_strength, shadow_min_step,
+                 shadow_t_max, sin_rho, max_steps=max_steps, newton_steps=int(newton_steps),
+                 ao_samples=int(ao_samples), shadow_steps=int(shadow_steps))
+    depth, t, p, nrm, ao, sh, oid, alb, hit, unconv, n = out
+    r = lambda x, extra=(): x.reshape(shape + extra)  # noqa: E731
+    return SDFRender(r(depth), r(t), r(p, (3,)), r(nrm, (3,)), r(ao), r(sh), r(oid), r(alb), r(hit), r(unconv),
+                     r(n), jnp.sum(unconv).astype(jnp.int32))
+
+
+@functools.partial(jax.jit, static_argnames=("max_steps", "newton_steps", "ao_samples", "shadow_steps"))
+def _trace(field, of, df, axis, light, t_min, t_max, tol, ao_spacing, ao_strength, shadow_min_step, shadow_t_max,
+           sin_rho, *, max_steps, newton_steps, ao_samples, shadow_steps):
+    """The per-ray work of :func:`trace_rays`, one module-level program: called eagerly, its
+    ``vmap`` of ``fori_loop`` marches over closures compiled again on every call."""
 
     def one(oo, dd):
         t, hit, unconv, n = _march(field, jax.lax.stop_gradient(oo), jax.lax.stop_gradient(dd), t_min, t_max,
@@ -642,11 +663,7 @@ def trace_rays(scene, origins, directions, *, axis=None, light_dir=None, light_a
                 jnp.where(hit, nrm, nan), jnp.where(hit, ao, nan), jnp.where(hit, sh, nan),
                 jnp.where(hit, oid, -1), jnp.where(hit, alb, nan), hit, unconv, n)
 
-    out = jax.vmap(one)(of, df)
-    depth, t, p, nrm, ao, sh, oid, alb, hit, unconv, n = out
-    r = lambda x, extra=(): x.reshape(shape + extra)  # noqa: E731
-    return SDFRender(r(depth), r(t), r(p, (3,)), r(nrm, (3,)), r(ao), r(sh), r(oid), r(alb), r(hit), r(unconv),
-                     r(n), jnp.sum(unconv).astype(jnp.int32))
+    return jax.vmap(one)(of, df)
 
 
 def render_sdf(scene, camera: Camera, *, undistort: bool = True, **kw) -> SDFRender:
