@@ -8,6 +8,7 @@ program is cached; a count above zero points at a function that builds a new pro
 argument that changes per call). Usage::
 
     python tools/recompile_scan.py [--only fsjax.fit.icp,...] [--out FILE.md]
+    python tools/recompile_scan.py --ops [--only gaussian,...]   # registered ops' worked examples, eager
 
 Writes a Markdown table (module, compiles in run 1 / run 2, seconds of each run).
 """
@@ -57,29 +58,41 @@ def _run(mod):
     return runner.summarize(verbose=False).failed
 
 
+def _run_op(spec):
+    parser = doctest.DocTestParser()
+    globs = {"fsjax": fsjax, "jnp": jnp, "np": np, "jax": jax}
+    test = parser.get_doctest(spec.doc, globs, spec.name, spec.module, 0)
+    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    runner.run(test, out=lambda s: None)
+    return runner.failures
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", default="", help="comma-separated module names")
     ap.add_argument("--out", default="", help="write the Markdown table here")
+    ap.add_argument("--ops", action="store_true", help="registered ops' worked examples (eager calls)")
     a = ap.parse_args(argv)
     jax.monitoring.register_event_duration_secs_listener(_on_duration)
     only = {s for s in a.only.split(",") if s}
     rows = []
-    for mod in _modules():
-        if only and mod.__name__ not in only:
+    items = ([(s.name, _run_op, s) for s in fsjax.list_ops()] if a.ops
+             else [(m.__name__, _run, m) for m in _modules()])
+    for name, run, obj in items:
+        if only and name not in only:
             continue
         res = []
         for _ in range(2):
             n0 = _EVENTS["n"]
             del _EVENTS["names"][:]
             t0 = time.perf_counter()
-            failed = _run(mod)
+            failed = run(obj)
             res.append((_EVENTS["n"] - n0, time.perf_counter() - t0, failed, list(_EVENTS["names"])))
         names = sorted(set(res[1][3]))
-        rows.append((mod.__name__, res[0][0], res[1][0], res[0][1], res[1][1], res[0][2] + res[1][2], names))
-        print(f"{mod.__name__:40s} compiles {res[0][0]:4d} -> {res[1][0]:4d}   {res[0][1]:7.1f} s -> "
+        rows.append((name, res[0][0], res[1][0], res[0][1], res[1][1], res[0][2] + res[1][2], names))
+        print(f"{name:40s} compiles {res[0][0]:4d} -> {res[1][0]:4d}   {res[0][1]:7.1f} s -> "
               f"{res[1][1]:6.1f} s  {', '.join(names[:6])}", flush=True)
-    lines = ["| module | compiles, 1st run | compiles, 2nd run | 1st run s | 2nd run s | programs compiled again |",
+    lines = [f"| {'op' if a.ops else 'module'} | compiles, 1st run | compiles, 2nd run | 1st run s | 2nd run s | programs compiled again |",
              "|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r[0]} | {r[1]} | {r[2]} | {r[3]:.1f} | {r[4]:.1f} | {', '.join(r[6][:8])} |")
