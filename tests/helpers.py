@@ -68,3 +68,26 @@ def unstack_tree(tree, i):
 
 __all__ = ["TOL", "tree_allclose", "tree_max_diff", "float_leaves", "inputs_for", "stack_trees",
            "unstack_tree", "fsjax"]
+
+
+_COMPILE_EVENTS = [0]
+_LISTENING: list[bool] = []
+
+
+def _on_compile_event(name, *_a, **_kw):
+    # a backend compile, or a program loaded from the persistent cache: either way the
+    # in-memory cache missed and a program was built for this call
+    if name in ("/jax/core/compile/backend_compile_duration", "/jax/compilation_cache/cache_hits"):
+        _COMPILE_EVENTS[0] += 1
+
+
+def programs_built(fn):
+    """``(result, n)``: ``fn()``'s result and how many programs JAX compiled (or loaded from the
+    persistent cache) while it ran. A second call with inputs of the same shapes should build 0."""
+    if not _LISTENING:
+        jax.monitoring.register_event_duration_secs_listener(_on_compile_event)
+        jax.monitoring.register_event_listener(_on_compile_event)
+        _LISTENING.append(True)
+    n0 = _COMPILE_EVENTS[0]
+    out = jax.block_until_ready(fn())
+    return out, _COMPILE_EVENTS[0] - n0

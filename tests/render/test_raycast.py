@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import programs_built
 
 import fsjax
 from fsjax.render import intersect, occluded_parallel, rasterize, sun_directions, sun_visibility
@@ -43,6 +44,11 @@ def test_occluded_parallel_matches_bruteforce_and_flags_overflow():
     print(f"parallel shadow rays vs brute force: {int(jnp.sum(o.occluded != ref))} of 400 differ, "
           f"overflow {int(o.overflow)}, {int(ref.sum())} occluded")
     assert int(o.overflow) == 0 and bool(jnp.all(o.occluded == ref))
+    # second eager calls of the same shapes build no program (eager lax.scan / lax.map over
+    # closures compiled again on every call)
+    (ref2, o2), n = programs_built(lambda: (intersect(m, P, jnp.broadcast_to(d, P.shape), s_min=1e-9).hit,
+                                            occluded_parallel(m, P, d, grid=32, capacity=64, s_min=1e-9)))
+    assert n == 0 and bool(jnp.all(ref2 == ref)) and bool(jnp.all(o2.occluded == o.occluded))
     small = occluded_parallel(m, P, d, grid=4, capacity=8, s_min=1e-9)
     wrong = small.occluded != ref
     print(f"capacity 8 on a 4x4 grid: overflow {int(small.overflow)}, {int(wrong.sum())} wrong answers, "

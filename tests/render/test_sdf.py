@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import programs_built
 
 import fsjax
 from fsjax.render import sdf as S
@@ -246,6 +247,10 @@ def test_misses_and_step_cap_reported():
     assert int(capped.n_unconverged) > 0
     assert not bool(jnp.any(capped.hit & capped.unconverged))
     assert bool(jnp.all(jnp.isnan(capped.depth[capped.unconverged])))
+    # a second eager call of the same shapes builds no program (the marches were eager loops over
+    # closures and compiled again on every call)
+    again, n = programs_built(lambda: S.render_sdf(scene, cam, t_max=20.0, max_steps=3))
+    assert n == 0 and bool(jnp.array_equal(again.depth, capped.depth, equal_nan=True))
 
 
 def test_depth_gradient_wrt_radius_matches_closed_form():
