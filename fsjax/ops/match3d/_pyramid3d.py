@@ -141,8 +141,9 @@ def ncc3d_pyramid(scene: Volume, template: Volume, /, *, levels: int | None = No
     takes 15-25 % of :func:`ncc3d`'s time per call (its compile is 2-4x longer). With the coarsest
     template only 4 voxels across, ``top_k=1`` missed the bunny on 3 of 3 scenes (reported
     ``valid=False``), ``top_k=4`` found it on all. A candidate that wins at the coarse level but is
-    another object is returned if its full-resolution score reaches ``min_score``: the carried
-    candidates lower that risk, they do not remove it.
+    another object is returned if its full-resolution score reaches ``min_score`` and it passes
+    :func:`ncc3d`'s mirror test: the carried candidates and the test lower that risk, they do not
+    remove it.
 
     Args:
       scene: the scene ``(D, H, W)``.
