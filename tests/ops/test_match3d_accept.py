@@ -59,7 +59,7 @@ def test_ncc3d_refuses_the_templates_mirror_image_and_steps_aside_for_symmetric_
     _, tp, _ = _grid_scene(0, True)
     t = np.asarray(tp.data)
     rng = np.random.default_rng(0)
-    scene = 0.01 * t.max() * rng.standard_normal((40, 40, 40))
+    scene = 0.01 * t.max() * rng.standard_normal((48, 48, 48))  # the grid's shapes: ncc3d compiled once
     scene[7:31, 9:33, 5:29] += t[::-1, :, :]  # the mirror image at offset (k, i, j) = (7, 9, 5)
     sc = fsjax.Volume(scene.astype(np.float32))
     tp32 = fsjax.Volume(t.astype(np.float32))
@@ -74,10 +74,10 @@ def test_ncc3d_refuses_the_templates_mirror_image_and_steps_aside_for_symmetric_
     assert m1.t.dtype == jnp.float32 and bool(m1.valid)
     np.testing.assert_allclose(np.asarray(m1.t), [5.0, 9.0, 7.0], atol=0.05)
     # a sphere shell template: every mirror image is the template
-    g = np.mgrid[0:15, 0:15, 0:15] - 7.0
-    shell = np.exp(-0.5 * (np.sqrt((g ** 2).sum(0)) - 4.0) ** 2)
-    sc2 = 0.01 * rng.standard_normal((30, 30, 30))
-    sc2[4:19, 10:25, 6:21] += shell
+    g = np.mgrid[0:24, 0:24, 0:24] - 11.5
+    shell = np.exp(-0.5 * (np.sqrt((g ** 2).sum(0)) - 6.0) ** 2)
+    sc2 = 0.01 * rng.standard_normal((48, 48, 48))
+    sc2[4:28, 10:34, 6:30] += shell
     S, _ = _ncc3d_map(jnp.asarray(sc2), jnp.asarray(shell))
     p = jnp.asarray(jnp.unravel_index(jnp.argmax(S), S.shape))
     pval, _, n_alt = mirror_chance(jnp.asarray(sc2), jnp.asarray(shell), p, S[tuple(p)])
