@@ -20,7 +20,7 @@ from ..types import Points, Volume
 from ._match3d import match3d_object, match3d_scene, rotation_zyx
 
 __all__ = ["MATCH3D_DESC_METHODS", "MATCH3D_DESC_STRUCTURES", "MATCH3D_DESC_NOT_YET", "MATCH3D_DESC_MIN",
-           "run_descriptor_cell", "harris3d_repeatability"]
+           "run_descriptor_cell", "harris3d_repeatability", "icp_floor"]
 
 MATCH3D_DESC_METHODS = ("sh_descriptor3d",)
 MATCH3D_DESC_STRUCTURES = ("voxel", "points", "mesh", "depth", "gaussians")
@@ -174,3 +174,44 @@ def harris3d_repeatability(*, seed: int = 0, n: int = 5000, angle_deg: float = 6
     null, _ = rep(xs[rng.choice(len(xs), len(pa))], xt[rng.choice(len(xt), len(pb))])
     return {"repeatability": r, "null": null, "n_keypoints": (len(pa), len(pb)), "n_shared": n_in,
             "valid": bool(len(pa) > 0 and len(pb) > 0), "keypoints": ka}
+
+
+# the variants of icp_floor: (name, one draw for both crops, ICP method, trimmed fraction kept)
+ICP_FLOOR_VARIANTS = (("independent draws, point-to-plane, trim 0.7 (measure_global's fine stage)", False,
+                       "point_to_plane", 0.7),
+                      ("one draw for both crops, point-to-plane, trim 0.7", True, "point_to_plane", 0.7),
+                      ("independent draws, point-to-plane, trim 0.5", False, "point_to_plane", 0.5),
+                      ("independent draws, GICP, trim 0.7", False, "gicp", 0.7))
+
+
+def icp_floor(*, seed: int = 0, n: int = 10000, variants: Any = ICP_FLOOR_VARIANTS, start_deg: float = 0.0) -> dict:
+    """Where "descriptor + RANSAC + ICP" ends on the global-registration crops, and why.
+
+    The fine stage of ``fsjax.fit.global_reg._measure_global`` (issue 4's scene: two bunny crops
+    sharing 70 % of each, 60 deg apart plus a translation; trimmed point-to-plane ICP, overlap 0.7,
+    gate 20 mm, on crops of ``n`` samples drawn independently, seeds ``seed + 10`` and ``seed + 11``)
+    run from the TRUE pose turned by ``start_deg`` (about (1, -0.3, 0.4)) instead of the descriptor's
+    coarse pose, so the descriptor has no say; each variant changes one thing (``variants``: the
+    name, one draw for both crops, the ICP method, the trimmed fraction). Returns ``{name: (rotation
+    error deg, translation error in the crops' unit, iterations, converged)}``.
+    """
+    from ..data import surface_points
+    from ..fit import icp
+    from ..fit.rigid import rotation_error_deg, rotation_from_axis_angle
+
+    keep = 1.0 / (2.0 - 0.7)
+    R = np.asarray(rotation_from_axis_angle(jnp.array([0.2, 1.0, 0.5]), 60.0))
+    shift = np.array([0.05, 0.02, -0.03])
+    R0 = np.asarray(rotation_from_axis_angle(jnp.array([1.0, -0.3, 0.4]), start_deg)) @ R
+    a, b = surface_points("bunny", n, seed + 10), surface_points("bunny", n, seed + 11)
+    out = {}
+    for name, one_draw, method, trim in variants:
+        bb = a if one_draw else b
+        xs = a[a[:, 0] <= np.quantile(a[:, 0], keep)]
+        xt = bb[bb[:, 0] >= np.quantile(bb[:, 0], 1.0 - keep)]
+        f = icp(jnp.asarray((xs - shift) @ R), jnp.asarray(xt), method=method, init_R=jnp.asarray(R0),
+                init_t=jnp.asarray(shift), overlap=trim, max_correspondence_distance=0.02,
+                min_inlier_fraction=0.35, max_iterations=100, rot_tol=1e-5, trans_tol=1e-5)
+        out[name] = (float(rotation_error_deg(f.R, jnp.asarray(R))), float(np.linalg.norm(np.asarray(f.t) - shift)),
+                     int(f.iterations), bool(f.converged))
+    return out

@@ -41,7 +41,7 @@ def test_pyramid_top_k_carries_the_object_past_a_coarse_decoy():
     assert not bool(m1.valid) and "not found" in m1.message and float(m1.score) < 0.7
     from fsjax.ops.match3d._pyramid3d import _pyramid_core
 
-    off, _, _ = _pyramid_core(scene.data, tpl.data, levels=1, top_k=1, window=2)
+    off, _, _, _ = _pyramid_core(scene.data, tpl.data, levels=1, top_k=1, window=2)
     np.testing.assert_allclose(np.asarray(off), [24.0, 22.0, 0.0], atol=0.2)  # (k, i, j): the decoy's place
     # top_k=4 carried the object down: found at its offset (x, y, z) = (23, 3, 1)
     assert bool(m4.valid) and float(m4.score) > 0.99

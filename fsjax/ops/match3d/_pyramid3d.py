@@ -34,7 +34,7 @@ from ..._checks import check_range, check_static_int
 from ...registry import register
 from ...types import Match3D, Volume
 from ..matching._correlation import _template_stats
-from ._fft3d import _ncc3d_map
+from ._fft3d import _ncc3d_map, mirror_chance
 from ._shared3d import (
     _INVALID,
     _NOT_FOUND,
@@ -112,7 +112,8 @@ def _pyramid_core(x, t, *, levels, top_k, window):
     v, _ = neighbourhood3(S, p - start)
     ok = (p >= 1) & (p <= jnp.asarray(x.shape) - jnp.asarray(t.shape) - 1)
     off = p.astype(x.dtype) + newton_peak3(v, ok)
-    return off, S[tuple(p - start)], tflat
+    s = S[tuple(p - start)]
+    return off, s, tflat, mirror_chance(x, t, p, s)[0]
 
 
 def _auto_levels(T) -> int:
@@ -125,7 +126,7 @@ def _auto_levels(T) -> int:
 @register(family="match3d", takes=(Volume, Volume), gives=Match3D, differentiable=False,
           refs=[_REF_BA, _REF_LEWIS, _REF_NW])
 def ncc3d_pyramid(scene: Volume, template: Volume, /, *, levels: int | None = None, top_k: int = 4,
-                  window: int = 2, min_score: float = 0.7) -> Match3D:
+                  window: int = 2, min_score: float = 0.7, max_chance: float = 0.01) -> Match3D:
     """Locate a template volume in a scene by coarse-to-fine 3-D NCC (a pyramid over :func:`ncc3d`).
 
     Both volumes are reduced ``levels`` times by 2 (binomial low-pass; Burt and Adelson 1983); the
@@ -140,8 +141,9 @@ def ncc3d_pyramid(scene: Volume, template: Volume, /, *, levels: int | None = No
     takes 15-25 % of :func:`ncc3d`'s time per call (its compile is 2-4x longer). With the coarsest
     template only 4 voxels across, ``top_k=1`` missed the bunny on 3 of 3 scenes (reported
     ``valid=False``), ``top_k=4`` found it on all. A candidate that wins at the coarse level but is
-    another object is returned if its full-resolution score reaches ``min_score``: the carried
-    candidates lower that risk, they do not remove it.
+    another object is returned if its full-resolution score reaches ``min_score`` and it passes
+    :func:`ncc3d`'s mirror test: the carried candidates and the test lower that risk, they do not
+    remove it.
 
     Args:
       scene: the scene ``(D, H, W)``.
@@ -154,12 +156,15 @@ def ncc3d_pyramid(scene: Volume, template: Volume, /, *, levels: int | None = No
       window: the search half-width at each finer level, fine voxels (static int in [1, 4]; default 2,
         i.e. one coarse voxel either side of the doubled position).
       min_score: ``valid`` needs a final score of at least this (default 0.7, as :func:`ncc3d`).
+      max_chance: ``valid`` needs the final placement to pass :func:`ncc3d`'s mirror test (the box
+        correlates with the template better than with each of its mirror images) at this p-value
+        (default 0.01, as :func:`ncc3d`; 1 turns the test off).
 
     Returns:
       ``Match3D`` in :func:`ncc3d`'s convention: ``t`` = the physical ``(x, y, z)`` position of the
       template's voxel ``[0, 0, 0]`` in the scene, ``R = I``, ``scale = 1``, ``score`` = the NCC at
       the integer placement. ``valid`` False (``invalid_input``) for a flat template, (``not_found``)
-      below ``min_score``.
+      below ``min_score`` or not specific (the mirror test above ``max_chance``).
 
     Example:
       A smooth blob cut out of a 32^3 scene, found through two pyramid levels at the place it was cut
@@ -187,7 +192,8 @@ def ncc3d_pyramid(scene: Volume, template: Volume, /, *, levels: int | None = No
     k = check_static_int(op, "top_k", top_k, lo=1, hi=64)
     w = check_static_int(op, "window", window, lo=1, hi=4)
     check_range(op, "min_score", min_score, -1.0, 1.0)
-    off, s, tflat = _pyramid_core(scene.data.astype(dt), template.data.astype(dt), levels=lv, top_k=k, window=w)
-    valid = jnp.logical_not(tflat) & (s >= jnp.asarray(min_score, dt))
+    check_range(op, "max_chance", max_chance, 0.0, 1.0)
+    off, s, tflat, chance = _pyramid_core(scene.data.astype(dt), template.data.astype(dt), levels=lv, top_k=k, window=w)
+    valid = jnp.logical_not(tflat) & (s >= jnp.asarray(min_score, dt)) & (chance <= jnp.asarray(max_chance, dt))
     reason = jnp.where(tflat, _INVALID, _NOT_FOUND)
     return make_match(jnp.eye(3, dtype=dt), xyz_of(off, scene.spacing).astype(dt), s, valid, reason)
