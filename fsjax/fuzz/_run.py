@@ -138,9 +138,14 @@ def classify_exception(e: BaseException, op: str, stage: int, mode: str) -> tupl
         if isinstance(e, TypeError) and _SORT_REFUSAL.search(head):
             return _Fail("TYPEMISS", stage, op, mode, "op refused a sort the checker accepted", _first_line(e))
         return ("refused", _first_line(e))
-    if "Equinox" in type(e).__name__ or (type(e).__name__ == "XlaRuntimeError" and "equinox" in msg.lower()):
-        if names_op:
-            return ("refused", _first_line(e))
+    if "Equinox" in type(e).__name__ or (type(e).__name__ in ("XlaRuntimeError", "JaxRuntimeError")
+                                          and "equinox" in msg.lower()):
+        # an op's own run-time refusal (``equinox.error_if``): under jit it arrives wrapped in the
+        # runtime's callback traceback; the op's message is on the EquinoxRuntimeError line
+        m = re.search(r"EquinoxRuntimeError: ([^\n]+)", msg)
+        text = m.group(1) if m else head
+        if op in text:
+            return ("refused", f"{type(e).__name__}: {text[:300]}")
     return _Fail("SUSPECT", stage, op, mode, f"{type(e).__name__}: {_norm(msg.strip().split(chr(10))[0])}",
                  _first_line(e))
 

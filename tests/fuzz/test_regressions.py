@@ -182,3 +182,64 @@ def test_sobel_dir_documented_nan_on_flat_areas(monkeypatch):
     monkeypatch.setattr(_run, "DOCUMENTED_NAN", frozenset())   # the null: without the rule
     o = fz.Runner([fsjax.get_op("sobel_dir")], grad=False, vmap=False).run(c)
     assert (o.status, o.cls) == ("failed", "NONFINITE"), o
+
+
+# render_silhouette with a small capacity under jit: the rasteriser's candidate buffer overflowed
+# and the Region came back with holes (MISMATCH jit vs eager in the fourth full run: 456 of 768
+# pixels; an eager call sizes the buffer from the data). A Region has no flag and a bool no NaN:
+# fixed in ops/measure3d/_render.py, the traced call raises through equinox.error_if (the fuzzer
+# counts that as the op's own refusal, like an eager ValueError).
+SILHOUETTE_CAP = {"input": {"dtype": "float64", "kind": "scene", "size": [16, 16], "sort": "Mesh", "variant": 0},
+                  "stages": [{"op": "render_silhouette", "a": None, "b": None, "params": {"capacity": 4},
+                              "slot": 0}]}
+
+
+def test_render_silhouette_overflow_fails_closed_under_jit():
+    import numpy as np
+
+    c = fz.Chain.from_json(SILHOUETTE_CAP)
+    mesh = fz.build_input(fsjax.Mesh, "scene", (16, 16), "float64")
+    cam = fz.build_input(fsjax.Camera, "scene", (16, 16), "float64", 1)   # the pool's second input
+    full = np.asarray(fsjax.ops.render_silhouette(mesh, cam).data)
+    small = np.asarray(fsjax.ops.render_silhouette(mesh, cam, capacity=4).data)   # eager: sized from the data
+    np.testing.assert_array_equal(small, full)
+    assert 0 < full.sum() < full.size
+    # the minimised chain, eager and under jit: refused under the trace (the op's own run-time
+    # error, raised only when the buffer overflowed), not a failure; before the fix: MISMATCH
+    o = fz.Runner([fsjax.get_op("render_silhouette")], grad=False, vmap=False).run(c)
+    assert o.status == "ok" and o.refused_traced and "render_silhouette: capacity 4 exceeded" in o.refused_traced[1], o
+
+
+# shape_locate with a template of vertical stripes (graycode_decode's column codes): MISMATCH jit
+# vs eager in the warm re-run of the fourth full run (row 2.1e-5, col 1e-3 px). Not rounding in a
+# score: every edge is parallel, so the row is undetermined; the refinement's normal matrix was
+# singular (its smallest eigenvalue was the 1e-9 regularisation at every step) and the
+# regularisation chose a pose that rounding moved. Fixed in ops/matching/_shape.py: an instance
+# whose normal matrix does not determine every pose direction is not converged (no instance).
+SHAPE_STRIPES = {"input": {"dtype": "float64", "kind": "scene", "size": [16, 16], "sort": "GrayStack", "variant": 0},
+                 "stages": [{"op": "graycode_decode", "a": 0.5, "b": None, "params": {}, "slot": 0},
+                            {"op": "shape_locate", "a": 0.8, "b": 0.4, "params": {}, "slot": 1}]}
+
+
+def test_shape_locate_parallel_edges_fail_closed(monkeypatch):
+    """No instance on the stripes; the null (the determinacy rule off) reports one there, at a
+    row that the regularisation chose. Instances of a template with edges in every direction
+    are unchanged: tests/ops/test_matching.py's alignment scene (three instances within 0.1 px)
+    and the docstring example pass with the rule."""
+    import numpy as np
+
+    from fsjax.ops.matching import _shape
+
+    c = fz.Chain.from_json(SHAPE_STRIPES)
+    gd, sl = fsjax.get_op("graycode_decode"), fsjax.get_op("shape_locate")
+    st0, st1 = c.stages
+    tpl = gd.fn(fz.build_input(fsjax.GrayStack, "scene", (16, 16), "float64"), **gd.knob_params(st0.a, st0.b))
+    t = np.asarray(tpl.data)
+    assert np.all(t == t[:1]) and np.ptp(t) > 0   # constant along rows: vertical stripes only
+    img = fz.build_input(fsjax.Image, "scene", (16, 16), "float64", 1)   # the pool's other input
+    kp = sl.knob_params(st1.a, st1.b)
+    m = sl.fn(img, tpl, **kp)
+    assert not bool(np.asarray(m.valid).any())   # undetermined: nothing reported
+    monkeypatch.setattr(_shape, "DET_MIN", -1.0)   # the null: the rule off
+    m0 = sl.fn(img, tpl, **kp, max_points=255)   # another static argument: traced again, without the rule
+    assert bool(m0.valid[0]) and float(m0.score[0]) > 0.9   # a confident instance, row arbitrary
