@@ -22,6 +22,9 @@ def main() -> None:
     p.add_argument("--no-grad", action="store_true")
     p.add_argument("--journal", help="also write every chain and outcome as JSON lines (cumulative figures later)")
     p.add_argument("--whole", type=float, default=None, help="fraction of chains compiled whole (default: fuzz's)")
+    p.add_argument("--compile-cache", default="off",
+                   help="persistent compile cache directory (default off: a cold measurement); warm or cold "
+                        "is printed")
     a = p.parse_args()
     import jax
     import jax.monitoring
@@ -39,6 +42,10 @@ def main() -> None:
     from fsjax.registry import list_ops
 
     list_ops()
+    if a.compile_cache != "off":
+        from fsjax.fuzz._report import _compile_cache
+
+        print("compile cache:", _compile_cache(a.compile_cache))
     t0 = time.perf_counter()
     kw = {} if a.whole is None else {"whole_chain_fraction": a.whole}
     if a.journal:
@@ -81,6 +88,15 @@ def main() -> None:
           f"staged prefixes {st.get('staged_prefix_hits', 0)}")
     print(f"chains per CPU-minute {60 * len(run.results) / max(run.cpu_seconds, 1e-9):.1f}; "
           f"ops executed {100 * run.executed_fraction():.1f} %")
+    k = (getattr(run, "stats", None) or {}).get("coverage_chains")
+    if k:   # the two phases of the generator apart
+        for name, part in (("coverage phase", run.results[:k]), ("reuse phase", run.results[k:])):
+            cpu = sum(float(o.times.get("cpu_s", 0.0)) for _, o in part)
+            comp = {w: sum(float(o.times.get(f"{w}_compile_s", 0.0)) for _, o in part) for w in ("eager", "staged", "grad")}
+            print(f"{name}: {len(part)} chains, {cpu:.0f} s CPU, {60 * len(part) / max(cpu, 1e-9):.1f} per CPU-minute; "
+                  f"compiling: eager {comp['eager']:.0f} s, staged {comp['staged']:.0f} s, grad {comp['grad']:.0f} s, "
+                  f"all ways {sum(float(o.times.get('compile_s', 0.0)) for _, o in part):.0f} s; "
+                  f"chains that compiled nothing {sum(1 for _, o in part if not o.times.get('compiles'))}")
     st = collections.Counter(o.status for _, o in run.results)
     print("outcomes:", dict(st), "classes:", {k: v for k, v in run.class_counts().items() if v})
     print("mean length", sum(len(c.stages) for c, _ in run.results) / max(1, len(run.results)))

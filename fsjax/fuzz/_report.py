@@ -171,6 +171,8 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
             run.stopped_early = f"time budget {time_budget_s:.0f} s reached after {k} chains"
             break
         chain = generate_chain(graph, rng, max_length, state)
+        if state.covered and "coverage_chains" not in runner.stats:
+            runner.stats["coverage_chains"] = k + 1   # the coverage phase ended with this chain
         whole = random.Random(f"{seed}:{k}").random() < whole_chain_fraction
         runner.release_if_needed()
         o = runner.run(chain, whole=whole)
