@@ -351,6 +351,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--compile-cache", default=None,
                    help="persistent compile cache directory for a run (default: fsjax's, as FSJAX_CACHE_DIR "
                         "resolves it; 'off' disables); the report says whether it was warm or cold")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes running chains side by side (default: min(2, CPU count)); each covers its "
+                        "share of the registry first, failures are minimised after")
     p.add_argument("--strict", action="store_true", help="exit 1 on SUSPECT/TYPEMISS/MISMATCH/SILENT_OVERFLOW/GRADNAN")
     p.add_argument("--replay", help="JSON-lines file of chains or failure records to run again")
     p.add_argument("--out", help="output directory (report.md, failures.jsonl, minimised.jsonl)")

@@ -372,6 +372,8 @@ class DrawState:
     history: list = dataclasses.field(default_factory=list)
     covered: bool = False   # every drawable op drawn at least once: the reuse phase
     drawn: dict = dataclasses.field(default_factory=dict)   # combination -> stages drawn for it (knobs, params)
+    cover: frozenset | None = None   # the ops the coverage phase must draw (None: every drawable op);
+    # a worker of a parallel run covers its share of the registry (fsjax.fuzz.fuzz(workers=...))
 
 
 def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: dict[str, int] | DrawState,
@@ -404,7 +406,8 @@ def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: 
     def w(name: str, sort: type | None = None, inp: dict | None = None) -> float:
         base = 1.0 / (1.0 + uses.get(name, 0)) ** 2
         if state is not None and not reuse:   # the coverage phase: an op not drawn yet first
-            return 1.0 if not uses.get(name) else COVERAGE_USED_WEIGHT * base
+            fresh = not uses.get(name) and (state.cover is None or name in state.cover)
+            return 1.0 if fresh else COVERAGE_USED_WEIGHT * base
         if not reuse:
             return base
         # the reuse phase: with replacement, combinations drawn before (compiled) preferred
@@ -466,7 +469,7 @@ def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: 
         del state.history[:-HISTORY]
         if not state.covered:
             drawable = graph.__dict__.setdefault("_drawable", [n for n, s in graph.specs.items() if graph.runnable(s)])
-            state.covered = all(uses.get(n, 0) for n in drawable)
+            state.covered = all(uses.get(n, 0) for n in drawable if state.cover is None or n in state.cover)
     return chain
 
 
