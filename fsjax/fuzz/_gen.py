@@ -406,8 +406,11 @@ def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: 
     def w(name: str, sort: type | None = None, inp: dict | None = None) -> float:
         base = 1.0 / (1.0 + uses.get(name, 0)) ** 2
         if state is not None and not reuse:   # the coverage phase: an op not drawn yet first
-            fresh = not uses.get(name) and (state.cover is None or name in state.cover)
-            return 1.0 if fresh else COVERAGE_USED_WEIGHT * base
+            if state.cover is not None and name not in state.cover and not uses.get(name):
+                # another worker's share (or outside a bounded run's share): only a bridge
+                # between sorts, not drawn for its own sake (it compiles everything new)
+                return COVERAGE_USED_WEIGHT ** 2
+            return 1.0 if not uses.get(name) else COVERAGE_USED_WEIGHT * base
         if not reuse:
             return base
         # the reuse phase: with replacement, combinations drawn before (compiled) preferred
