@@ -453,6 +453,8 @@ class Runner:
             return False
         if op in DOCUMENTED_NAN:   # NaN (not inf) where the op documents "undefined"
             return all(not (fl and np.any(np.isinf(a))) for a, _, fl, _ in _leaves_with_mask(out))
+        if op in DOCUMENTED_OVERFLOW:   # +-inf (not NaN) where the op documents overflow
+            return all(not (fl and np.any(np.isnan(a))) for a, _, fl, _ in _leaves_with_mask(out))
         rule = DOCUMENTED_NEG_INF.get(op)
         if rule is None:
             return False
@@ -943,6 +945,11 @@ DOCUMENTED_NEG_INF = {
 # only NaN is explained, an inf still fails
 DOCUMENTED_NAN = frozenset({
     "sobel_dir",   # "NaN where the gradient is zero up to rounding (a flat area); mask it with sobel_amp"
+})
+# ops whose Image output documents +-inf where the result overflows the dtype (IEEE overflow of an
+# exponential, on input far outside [0, 1]); only infinities are explained, a NaN still fails
+DOCUMENTED_OVERFLOW = frozenset({
+    "exp_transform",   # "+-inf where (1 + c)^|x| overflows the dtype"
 })
 
 

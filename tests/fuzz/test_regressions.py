@@ -243,3 +243,32 @@ def test_shape_locate_parallel_edges_fail_closed(monkeypatch):
     monkeypatch.setattr(_shape, "DET_MIN", -1.0)   # the null: the rule off
     m0 = sl.fn(img, tpl, **kp, max_points=255)   # another static argument: traced again, without the rule
     assert bool(m0.valid[0]) and float(m0.score[0]) > 0.9   # a confident instance, row arbitrary
+
+
+# exp_transform on the pool's very large image (the scene x 1e6, float32): (1 + c)^x overflows to
+# +inf (NONFINITE in the cold run of the fifth full run, docs/fuzz.md). IEEE overflow of the
+# exponential far outside the Image range [0, 1], as numpy.expm1 gives; now documented in its
+# docstring and read by the fuzzer (fsjax.fuzz._run.DOCUMENTED_OVERFLOW: infinities only, a NaN
+# still fails).
+EXP_LARGE = {"input": {"dtype": "float32", "kind": "large", "size": [16, 16], "sort": "Image", "variant": 0},
+             "stages": [{"op": "exp_transform", "a": 0.1, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_exp_transform_overflow_is_documented(monkeypatch):
+    import numpy as np
+
+    from fsjax.fuzz import _run
+
+    c = fz.Chain.from_json(EXP_LARGE)
+    spec = fsjax.get_op("exp_transform")
+    x = fz.build_input(fsjax.Image, "large", (16, 16), "float32")
+    kp = spec.knob_params(0.1, None)
+    y = np.asarray(spec.fn(x, **kp).data)
+    xs = np.asarray(x.data, np.float64)
+    over = xs * np.log1p(kp["c"]) > np.log(np.finfo(np.float32).max)
+    assert over.any() and np.all(np.isposinf(y[over])) and np.all(np.isfinite(y[~over]))
+    assert not np.isnan(y).any()
+    assert fz.Runner([spec], grad=False, vmap=False).run(c).status == "ok"
+    monkeypatch.setattr(_run, "DOCUMENTED_OVERFLOW", frozenset())   # the null: without the rule
+    o = fz.Runner([spec], grad=False, vmap=False).run(c)
+    assert (o.status, o.cls) == ("failed", "NONFINITE"), o
