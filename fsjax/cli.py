@@ -16,8 +16,9 @@
 ``fsjax fuzz --chains N --length L --seed S --out DIR`` / ``fsjax fuzz --replay FILE``
     the chain fuzzer (:mod:`fsjax.fuzz`): random typed chains run eager, under jit, vmap
     and grad (per-stage compiled programs reused across chains; ``--whole-chain F``: the
-    fraction of chains also compiled whole, default 0.05); failures classified and
-    minimised into ``DIR/report.md`` and JSON lines.
+    fraction of chains also compiled whole, default 0.05; ``--workers N``: processes side
+    by side, default ``min(2, CPU count)``); failures classified and minimised into
+    ``DIR/report.md`` and JSON lines.
 
 ``fsjax sfm IMAGE_DIR --out DIR [--intrinsics fx,fy,cx,cy] [--ground-truth cameras.json]``
     structure from motion (:mod:`fsjax.sfm`): ``DIR/report.md``, ``DIR/sparse/*.txt`` (COLMAP
