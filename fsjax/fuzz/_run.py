@@ -746,6 +746,10 @@ class Runner:
                 raise _Fail("RECOMPILE", i, st.op, "grad", "a cached stage program called again with the same shapes "
                             "compiled again")
             if any(not bool(np.all(np.isfinite(np.asarray(g)))) for g in (*gx, gk)):
+                if not (_all_finite(xin) and _all_finite(eager_outs[i])):
+                    # the stage's own forward is not finite (a documented -inf/inf/NaN passed the
+                    # forward checks): its gradient is undefined, not a GRADNAN ("finite forward")
+                    return
                 raise _Fail("GRADNAN", i, st.op, "grad", "NaN gradient, finite forward")
             ct = list(gx)
 
@@ -904,6 +908,20 @@ def _output_weights(y) -> list:
             ok = ok & valid.reshape(valid.shape + (1,) * (leaf.ndim - valid.ndim))
         out.append((leaf, w, ok))
     return out
+
+
+def _all_finite(tree) -> bool:
+    """Every inexact leaf of ``tree`` finite (where its ``valid`` mask applies)."""
+    import numpy as np
+
+    for a, m, fl, _ in _leaves_with_mask(tree):
+        if fl:
+            ok = np.isfinite(a)
+            if m is not None:
+                ok |= ~m
+            if not ok.all():
+                return False
+    return True
 
 
 def _avals(tree) -> tuple:

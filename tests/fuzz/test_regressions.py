@@ -268,7 +268,11 @@ def test_exp_transform_overflow_is_documented(monkeypatch):
     over = xs * np.log1p(kp["c"]) > np.log(np.finfo(np.float32).max)
     assert over.any() and np.all(np.isposinf(y[over])) and np.all(np.isfinite(y[~over]))
     assert not np.isnan(y).any()
-    assert fz.Runner([spec], grad=False, vmap=False).run(c).status == "ok"
+    # with grad: the fifth full run's GRADNAN (exp_transform -> shi_tomasi -> log -> measure_pairs):
+    # the pull-back through an overflowed (+inf) value is undefined, and the stage's forward is not
+    # finite, so it is no "finite forward, NaN gradient" (the fuzzer's stage-by-stage grad now
+    # blames a stage only when its input and output are finite)
+    assert fz.Runner([spec], vmap=False).run(c).status == "ok"
     monkeypatch.setattr(_run, "DOCUMENTED_OVERFLOW", frozenset())   # the null: without the rule
     o = fz.Runner([spec], grad=False, vmap=False).run(c)
     assert (o.status, o.cls) == ("failed", "NONFINITE"), o
