@@ -367,6 +367,7 @@ class Runner:
 
     # -- checks on one eager stage output ------------------------------------
     def _check_stage(self, i: int, spec, ins: tuple, out, kp: dict, params: tuple) -> None:
+        import jax.numpy as jnp
         import numpy as np
 
         op = spec.name
@@ -379,7 +380,11 @@ class Runner:
         want = _declared_batch(spec, params)
         if bshape != want:
             raise _Fail("CONTRACT", i, op, "eager", f"output batch shape {bshape}, expected {want}")
-        in_dt = float_dtype(ins[0]) if float_dtype(ins[0]) else None
+        # the inputs' floating dtypes promoted together (a float64 template beside a float32 image
+        # gives float64, as JAX promotes; the fifth run's false CONTRACT in shape_locate, whose
+        # template came from distance_transform of a Region: float64 with x64 on)
+        dts = [d for d in (float_dtype(a) for a in ins) if d]
+        in_dt = str(jnp.result_type(*dts)) if dts else None
         out_dt = float_dtype(out)
         if in_dt and out_dt and in_dt != out_dt:
             raise _Fail("CONTRACT", i, op, "eager", f"dtype not kept ({in_dt} in, {out_dt} out)")

@@ -301,3 +301,21 @@ def test_decorrelation_stretch_float32_rank2_repeated():
     assert err < 1e-4, err   # was 4.5e-3
     o = fz.Runner([fsjax.get_op("decorrelation_stretch")], grad=False, vmap=False).run(c)
     assert o.status == "ok", o
+
+
+# shape_locate with a float32 image and a float64 template (the fifth run: `Image[spike f32] ->
+# threshold -> region_dilate -> distance_transform -> shape_locate#1`; the distance map of a Region
+# is float64 with x64 on) returned float64: JAX's promotion of mixed inputs, not a contract break.
+# The fuzzer compared the output with the first input's dtype only (false CONTRACT); now with the
+# inputs' dtypes promoted together.
+def test_dtype_contract_promotes_mixed_inputs():
+    from fsjax.fuzz._run import _Fail
+
+    spec = fsjax.get_op("add_images")
+    a32 = fz.build_input(fsjax.Image, "scene", (8, 8), "float32")
+    a64 = fz.build_input(fsjax.Image, "scene", (8, 8), "float64")
+    runner = fz.Runner([spec], grad=False, vmap=False)
+    out = fsjax.Image(a64.data)   # a float64 output, as shape_locate gave (the rule, not add_images, is tested)
+    runner._check_stage(0, spec, (a32, a64), out, {}, ())   # promoted: kept
+    with pytest.raises(_Fail, match="dtype not kept"):   # two float32 inputs, a float64 output: broken
+        runner._check_stage(0, spec, (a32, a32), out, {}, ())
