@@ -830,8 +830,11 @@ class Runner:
         return True
 
     def _traced_error(self, e: BaseException, chain: Chain, mode: str, out: Outcome) -> None:
-        # which stage? the message names ops; blame the first op named, else the chain
-        op = next((s.op for s in chain.stages if s.op in str(e)[:400]), None)
+        # which stage? the message names ops; blame the first op named, else the chain (an op's
+        # run-time error under jit names it on the EquinoxRuntimeError line, after the traceback)
+        m = re.search(r"EquinoxRuntimeError: ([^\n]+)", str(e))
+        head = m.group(1) if m else str(e)[:400]
+        op = next((s.op for s in chain.stages if s.op in head), None)
         stage = next((i for i, s in enumerate(chain.stages) if s.op == op), None)
         r = classify_exception(e, op or "\0", stage, mode)
         if isinstance(r, _Fail):
@@ -968,6 +971,7 @@ DOCUMENTED_NEG_INF = {
 # only NaN is explained, an inf still fails
 DOCUMENTED_NAN = frozenset({
     "sobel_dir",   # "NaN where the gradient is zero up to rounding (a flat area); mask it with sobel_amp"
+    "absolute_phase",   # "Negative codes (-1: undecidable; any code rounding below 0) give NaN"
 })
 # ops whose Image output documents +-inf where the result overflows the dtype (IEEE overflow of an
 # exponential, on input far outside [0, 1]); only infinities are explained, a NaN still fails

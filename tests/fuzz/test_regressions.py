@@ -319,3 +319,24 @@ def test_dtype_contract_promotes_mixed_inputs():
     runner._check_stage(0, spec, (a32, a64), out, {}, ())   # promoted: kept
     with pytest.raises(_Fail, match="dtype not kept"):   # two float32 inputs, a float64 output: broken
         runner._check_stage(0, spec, (a32, a32), out, {}, ())
+
+
+# absolute_phase gives NaN where a code is negative (-1: undecidable), as its docstring says; the fifth run
+# reported NONFINITE (`Color -> color_channel -> fft_phase -> absolute_phase#1`: codes from a phase
+# image). The fuzzer reads the documented NaN (DOCUMENTED_NAN); an inf would still fail.
+def test_absolute_phase_documented_nan(monkeypatch):
+    import numpy as np
+
+    from fsjax.fuzz import _run
+    from fsjax.fuzz._run import _Fail
+
+    wrapped = fsjax.Image(jnp.zeros((2, 2)))
+    code = fsjax.Image(jnp.asarray([[0.0, -1.0], [1.0, -3.0]]))
+    out = fsjax.ops.absolute_phase(wrapped, code, code)
+    d = np.asarray(out.data)
+    assert np.array_equal(np.isnan(d), np.asarray(code.data) < 0)   # NaN exactly at the negative codes
+    runner = fz.Runner([fsjax.get_op("absolute_phase")], grad=False, vmap=False)
+    runner._check_finite(0, "absolute_phase", out, "eager", ())
+    monkeypatch.setattr(_run, "DOCUMENTED_NAN", frozenset())   # the null: without the rule
+    with pytest.raises(_Fail, match="NaN in the output"):
+        runner._check_finite(0, "absolute_phase", out, "eager", ())
