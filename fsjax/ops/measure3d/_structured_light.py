@@ -29,7 +29,6 @@ complementary Gray-code light", Optics and Lasers in Engineering 50(4) (2012).
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np
