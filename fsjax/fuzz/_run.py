@@ -606,7 +606,7 @@ class Runner:
         out.times["whole_traced"] = time.perf_counter() - t_start
         if differentiable:
             t_start = time.perf_counter()
-            self._grad(chain, f, x, knobs, None)
+            self._grad(chain, f, x, knobs, (stage_ins, eager_outs))
             out.times["whole_grad"] = time.perf_counter() - t_start
 
     # -- the traced ways, stage by stage -------------------------------------------
@@ -852,6 +852,10 @@ class Runner:
             if self._grad_nan(sub, self._traced(sub, chain.inp["dtype"]), x, knobs[:k]):
                 n = k
                 break
+        if y_last is not None:   # (stage inputs, eager outputs): as the stage-by-stage grad, a stage
+            ins, outs = y_last    # whose own forward is not finite has no "finite forward"
+            if not (_all_finite(ins[n - 1][chain.stages[n - 1].slot]) and _all_finite(outs[n - 1])):
+                return
         raise _Fail("GRADNAN", n - 1, chain.stages[n - 1].op, "grad", "NaN gradient, finite forward")
 
     def _grad_nan(self, chain: Chain, f, x, knobs) -> bool | None:
