@@ -430,9 +430,7 @@ def decorrelation_stretch(img: Color, /, *, target_sigma: float | None = None,
     whitened exactly; a null axis carries nothing and stays (near) zero, with no
     blow-up under small perturbations. A constant image (variance below
     ``(64 eps max|x|)^2``, the mean's rounding) is returned as its mean, with or
-    without ``target_sigma``; an axis whose eigenvalue is below that floor or within
-    ``64 eps`` of the largest (a rank-deficient image's null axis: rounding noise) gets gain 0, so float32 rounding is not stretched by
-    ``max_gain`` (three stretches of a rank-2 float32 image agree with float64 to 5e-7).
+    without ``target_sigma``.
     Gradients are finite when the eigenvalues are distinct and on a constant image
     (all three zero: the output is the mean, found by the chain fuzzer); where two
     coincide otherwise (e.g. a grey image with noise) they are NaN, the usual
@@ -489,13 +487,7 @@ def decorrelation_stretch(img: Color, /, *, target_sigma: float | None = None,
     lam, vec = jnp.linalg.eigh(jnp.where(flat_cov, jnp.diag(jnp.arange(1.0, 4.0, dtype=cov.dtype)), cov))
     floor = jnp.maximum(lam, jnp.max(lam) / max_gain**2)
     ok = floor > 0
-    # an axis whose variance is below the same rounding floor is a null axis: its deviations are
-    # rounding noise, which the max_gain floor would stretch by up to max_gain (float32: a rank-2
-    # colour image stretched three times drifted 4.5e-3 from float64, the chain fuzzer's MISMATCH);
-    # it gets gain 0 and carries nothing
-    # (below the mean's rounding floor, or within eigh's rounding of zero: 64 eps of the largest)
-    null = lam <= jnp.maximum(tol, 64 * jnp.finfo(x.dtype).eps * jnp.max(lam))
-    ok = ok & ~flat_cov & ~null
+    ok = ok & ~flat_cov
     gain = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, floor, jnp.ones_like(floor))), jnp.zeros_like(floor))
     whiten = (vec * gain[None, :]) @ vec.T
     if target_sigma is None:
