@@ -424,7 +424,7 @@ def test_generated_chains_type_correct_and_report(planted, tmp_path):
 # the bounded fuzz CI runs: a fixed seed over the whole registry
 # ---------------------------------------------------------------------------
 
-BOUNDED_CHAINS = 48
+BOUNDED_CHAINS = 32
 BOUNDED_LENGTH = 4
 BOUNDED_SEED = 2026
 BOUNDED_COVERAGE = 0.05   # the coverage phase draws 5 % of the ops (12 of ~230, drawn from the seed) first
@@ -438,7 +438,7 @@ def test_bounded_fuzz_whole_registry():
     Sized for the suite (docs/fuzz.md): a cold coverage phase costs ~4 s of CPU per chain, so
     the run covers a seeded 5 % of the ops first (``coverage_share``) and then repeats what it
     drew, reaching other ops, inputs and knob values at the generator's ``NEW_COMBO_RATE``:
-    48 chains of length <= 4 (16 before, all in the coverage phase). Chains whose draw says so
+    32 chains of length <= 4 (16 before, all in the coverage phase). Chains whose draw says so
     also run compiled whole. Each failure's replayable chain is in the assertion message.
     """
     import random
