@@ -16,8 +16,9 @@
 ``fsjax fuzz --chains N --length L --seed S --out DIR`` / ``fsjax fuzz --replay FILE``
     the chain fuzzer (:mod:`fsjax.fuzz`): random typed chains run eager, under jit, vmap
     and grad (per-stage compiled programs reused across chains; ``--whole-chain F``: the
-    fraction of chains also compiled whole, default 0.05); failures classified and
-    minimised into ``DIR/report.md`` and JSON lines.
+    fraction of chains also compiled whole, default 0.05; ``--workers N``: processes side
+    by side, default ``min(2, CPU count)``); failures classified and minimised into
+    ``DIR/report.md`` and JSON lines.
 
 ``fsjax sfm IMAGE_DIR --out DIR [--intrinsics fx,fy,cx,cy] [--ground-truth cameras.json]``
     structure from motion (:mod:`fsjax.sfm`): ``DIR/report.md``, ``DIR/sparse/*.txt`` (COLMAP
@@ -351,6 +352,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--compile-cache", default=None,
                    help="persistent compile cache directory for a run (default: fsjax's, as FSJAX_CACHE_DIR "
                         "resolves it; 'off' disables); the report says whether it was warm or cold")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes running chains side by side (default: min(2, CPU count)); each covers its "
+                        "share of the registry first, failures are minimised after")
     p.add_argument("--strict", action="store_true", help="exit 1 on SUSPECT/TYPEMISS/MISMATCH/SILENT_OVERFLOW/GRADNAN")
     p.add_argument("--replay", help="JSON-lines file of chains or failure records to run again")
     p.add_argument("--out", help="output directory (report.md, failures.jsonl, minimised.jsonl)")

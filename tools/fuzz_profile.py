@@ -4,6 +4,11 @@
 
 Prints wall time, chains/min, the per-way breakdown the runner records (``Outcome.times``),
 and the backend compiles with their summed compile and trace durations (jax.monitoring).
+
+    python tools/fuzz_profile.py --read DIR/chains.jsonl --workers 2 --coverage 62,60
+
+reads a run's journal instead (``fsjax fuzz`` writes it): CPU per chain in the coverage and
+reuse phases (the report's "worker processes" row gives each worker's coverage-phase chains).
 """
 
 from __future__ import annotations
@@ -22,7 +27,16 @@ def main() -> None:
     p.add_argument("--no-grad", action="store_true")
     p.add_argument("--journal", help="also write every chain and outcome as JSON lines (cumulative figures later)")
     p.add_argument("--whole", type=float, default=None, help="fraction of chains compiled whole (default: fuzz's)")
+    p.add_argument("--compile-cache", default="off",
+                   help="persistent compile cache directory (default off: a cold measurement); warm or cold "
+                        "is printed")
+    p.add_argument("--read", help="a run's journal (DIR/chains.jsonl): print its phases' rates and stop")
+    p.add_argument("--workers", type=int, default=1, help="with --read: the run's worker processes")
+    p.add_argument("--coverage", help="with --read: coverage-phase chains per worker, comma-separated")
     a = p.parse_args()
+    if a.read:
+        read_journal(a.read, a.workers, [int(v) for v in a.coverage.split(",")] if a.coverage else None)
+        return
     import jax
     import jax.monitoring
 
@@ -39,6 +53,10 @@ def main() -> None:
     from fsjax.registry import list_ops
 
     list_ops()
+    if a.compile_cache != "off":
+        from fsjax.fuzz._report import _compile_cache
+
+        print("compile cache:", _compile_cache(a.compile_cache))
     t0 = time.perf_counter()
     kw = {} if a.whole is None else {"whole_chain_fraction": a.whole}
     if a.journal:
@@ -81,9 +99,40 @@ def main() -> None:
           f"staged prefixes {st.get('staged_prefix_hits', 0)}")
     print(f"chains per CPU-minute {60 * len(run.results) / max(run.cpu_seconds, 1e-9):.1f}; "
           f"ops executed {100 * run.executed_fraction():.1f} %")
+    k = (getattr(run, "stats", None) or {}).get("coverage_chains")
+    if k:   # the two phases of the generator apart
+        for name, part in (("coverage phase", run.results[:k]), ("reuse phase", run.results[k:])):
+            cpu = sum(float(o.times.get("cpu_s", 0.0)) for _, o in part)
+            comp = {w: sum(float(o.times.get(f"{w}_compile_s", 0.0)) for _, o in part) for w in ("eager", "staged", "grad")}
+            print(f"{name}: {len(part)} chains, {cpu:.0f} s CPU, {60 * len(part) / max(cpu, 1e-9):.1f} per CPU-minute; "
+                  f"compiling: eager {comp['eager']:.0f} s, staged {comp['staged']:.0f} s, grad {comp['grad']:.0f} s, "
+                  f"all ways {sum(float(o.times.get('compile_s', 0.0)) for _, o in part):.0f} s; "
+                  f"chains that compiled nothing {sum(1 for _, o in part if not o.times.get('compiles'))}")
     st = collections.Counter(o.status for _, o in run.results)
     print("outcomes:", dict(st), "classes:", {k: v for k, v in run.class_counts().items() if v})
     print("mean length", sum(len(c.stages) for c, _ in run.results) / max(1, len(run.results)))
+
+
+def read_journal(path: str, workers: int, coverage: list[int] | None) -> None:
+    import json
+
+    rows = [json.loads(line) for line in open(path) if line.strip()]
+    for k, d in enumerate(rows):
+        d.setdefault("index", k)   # journals before workers: in order
+    phases = {"all": rows}
+    if coverage:
+        phases["coverage phase"] = [d for d in rows if d["index"] // workers < coverage[d["index"] % workers]]
+        phases["reuse phase"] = [d for d in rows if d["index"] // workers >= coverage[d["index"] % workers]]
+    for name, part in phases.items():
+        t = collections.Counter()
+        for d in part:
+            for k, v in d["outcome"]["times"].items():
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    t[k] += v
+        none = sum(1 for d in part if not d["outcome"]["times"].get("compiles"))
+        print(f"{name}: {len(part)} chains, {t['cpu_s']:.0f} s CPU, {60 * len(part) / max(t['cpu_s'], 1e-9):.1f} per "
+              f"CPU-minute; compiling (wall) eager {t['eager_compile_s']:.0f} s, staged {t['staged_compile_s']:.0f} s, "
+              f"grad {t['grad_compile_s']:.0f} s; chains that compiled nothing {none}")
 
 
 if __name__ == "__main__":

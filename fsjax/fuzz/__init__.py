@@ -41,8 +41,15 @@ How chains are drawn so that compiled programs repeat (the cost of a chain is co
 * then a **reuse phase**, drawing **with replacement**: with probability ``PREFIX_REUSE``
   (0.6) a chain starts from an earlier chain's input and a prefix of its stages, knob values
   included (a prefix that was refused or failed is cut before the stage that stopped it), and
-  is extended with new stages; an (op, running sort, size, dtype) combination drawn before
-  weighs ``SEEN_WEIGHT`` (4) times an unseen one;
+  is extended with new stages; each stage is drawn in two levels: with probability
+  ``NEW_COMBO_RATE`` (0.05) among the (op, running sort, size, dtype) combinations not drawn
+  before, else among those drawn before, whose knob values and parameters it takes again with
+  the same probability (a knob that sizes an array gives the shapes every later program depends
+  on); inputs leave the canonical size at that rate too (``NEW_COMBO_RATE = None``: the old
+  one-level weighting, a drawn combination ``SEEN_WEIGHT`` (4) times an unseen one);
+* ``workers`` processes (``fsjax fuzz --workers``, default ``min(2, CPU count)``) run the
+  chains side by side, each covering every ``W``-th op first; ``coverage_share`` (a bounded
+  run) covers a seeded share of the ops first;
 * the pool's sizes: the canonical 16 x 16, the odd 15 x 17 for 15 % of scene/raster inputs,
   and the edge inputs 1 x 1 and 3 x 5 (rarer than before);
 * the runner keeps the **eager results and stage-program batches of every chain prefix that

@@ -349,7 +349,14 @@ def _input_for(sort: type, rng: random.Random, canonical: bool = False) -> dict:
 # input size, dtype) was drawn before weighs ``SEEN_WEIGHT`` times an unseen one (its
 # compiled programs very likely exist). Least-used-first drawing stays for the unseen.
 PREFIX_REUSE = 0.6
-SEEN_WEIGHT = 4.0
+SEEN_WEIGHT = 4.0   # a seen combination against an unseen one, when the two-level draw is off
+# The reuse phase draws each stage in two levels: with probability ``NEW_COMBO_RATE`` among the
+# candidates whose (op, running sort, input size, dtype) was not drawn before (new programs to
+# compile), otherwise among those drawn before (their programs exist). A one-level weighting
+# (``SEEN_WEIGHT`` x) cannot bound the compiles: the unseen candidates are many, so their summed
+# weight won (80 % of reuse-phase chains compiled something in the fourth full run). ``None``:
+# the one-level weighting.
+NEW_COMBO_RATE: float | None = 0.05
 HISTORY = 400   # earlier chains a prefix is drawn from (the most recent)
 COVERAGE_USED_WEIGHT = 0.02   # coverage phase: an op drawn before, against 1 for one not drawn yet
 
@@ -364,6 +371,9 @@ class DrawState:
     seen: set = dataclasses.field(default_factory=set)
     history: list = dataclasses.field(default_factory=list)
     covered: bool = False   # every drawable op drawn at least once: the reuse phase
+    drawn: dict = dataclasses.field(default_factory=dict)   # combination -> stages drawn for it (knobs, params)
+    cover: frozenset | None = None   # the ops the coverage phase must draw (None: every drawable op);
+    # a worker of a parallel run covers its share of the registry (fsjax.fuzz.fuzz(workers=...))
 
 
 def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: dict[str, int] | DrawState,
@@ -382,9 +392,24 @@ def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: 
     uses = state.uses if state is not None else uses
     reuse = state is not None and state.covered
 
+    def pick(items: list, keys: list, weights: list[float]):
+        # the reuse phase's two-level draw (NEW_COMBO_RATE): seen combinations, else new ones
+        if reuse and NEW_COMBO_RATE is not None:
+            seen = [k in state.seen for k in keys]
+            old = [it for it, sn in zip(items, seen) if sn]
+            new = [it for it, sn in zip(items, seen) if not sn]
+            if old and (not new or rng.random() >= NEW_COMBO_RATE):
+                return old[rng.randrange(len(old))]
+            return new[rng.randrange(len(new))]
+        return _weighted(rng, items, weights)
+
     def w(name: str, sort: type | None = None, inp: dict | None = None) -> float:
         base = 1.0 / (1.0 + uses.get(name, 0)) ** 2
         if state is not None and not reuse:   # the coverage phase: an op not drawn yet first
+            if state.cover is not None and name not in state.cover and not uses.get(name):
+                # another worker's share (or outside a bounded run's share): only a bridge
+                # between sorts, not drawn for its own sake (it compiles everything new)
+                return COVERAGE_USED_WEIGHT ** 2
             return 1.0 if not uses.get(name) else COVERAGE_USED_WEIGHT * base
         if not reuse:
             return base
@@ -404,27 +429,42 @@ def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: 
     if not stages:
         # first stage: any op with a slot the pool feeds directly
         firsts = [(s, i, p) for p in sorted(graph.pool, key=lambda t: t.__name__) for s, i in graph.candidates(p)]
+        # the coverage phase draws canonical inputs only; the reuse phase other sizes and the edge
+        # inputs at the rate of new combinations (every new shape compiles every program again)
+        canonical = state is not None and (not reuse or (NEW_COMBO_RATE is not None and rng.random() >= NEW_COMBO_RATE))
         sort_in = {}
         fw = []
         for s, _, p in firsts:
             if p not in sort_in:
-                sort_in[p] = _input_for(p, rng, canonical=state is not None and not reuse)
+                sort_in[p] = _input_for(p, rng, canonical=canonical)
             fw.append(w(s.name, p, sort_in[p]))
-        spec, slot, psort = _weighted(rng, firsts, fw)
+        fkeys = [(s.name, p.__name__, sort_in[p]["size"], sort_in[p]["dtype"]) for s, _, p in firsts]
+        spec, slot, psort = pick(firsts, fkeys, fw)
         inp = sort_in[psort]
     for k in range(len(stages), length):
         if k > 0:
             cands = graph.candidates(cur)
             if not cands:
                 break
-            spec, slot = _weighted(rng, cands, [w(s.name, cur, inp) for s, _ in cands])
-        knobs = [_draw_knob(rng) if rng.random() < 0.85 else None for _ in spec.knobs]
-        a = knobs[0] if knobs else None
-        b = knobs[1] if len(knobs) > 1 else None
-        stages.append(Stage(spec.name, a, b, _draw_params(spec, rng), slot))
+            spec, slot = pick(cands, [(s.name, cur.__name__, inp["size"], inp["dtype"]) for s, _ in cands],
+                              [w(s.name, cur, inp) for s, _ in cands])
+        combo = (spec.name, (cur or psort).__name__, inp["size"], inp["dtype"])
+        earlier = state.drawn.get(combo) if state is not None else None
+        if reuse and NEW_COMBO_RATE is not None and earlier and rng.random() >= NEW_COMBO_RATE:
+            # knob values and parameters drawn before for this combination: a knob that sizes an
+            # array (a kernel, a crop) gives the shapes, so the eager primitives and every later
+            # stage's programs exist; new values at the rate of new combinations
+            stages.append(dataclasses.replace(earlier[rng.randrange(len(earlier))], slot=slot))
+        else:
+            knobs = [_draw_knob(rng) if rng.random() < 0.85 else None for _ in spec.knobs]
+            a = knobs[0] if knobs else None
+            b = knobs[1] if len(knobs) > 1 else None
+            stages.append(Stage(spec.name, a, b, _draw_params(spec, rng), slot))
+            if state is not None and len(state.drawn.setdefault(combo, [])) < 8:
+                state.drawn[combo].append(stages[-1])
         uses[spec.name] = uses.get(spec.name, 0) + 1
         if state is not None:
-            state.seen.add((spec.name, (cur or psort).__name__, inp["size"], inp["dtype"]))
+            state.seen.add(combo)
         cur = spec.gives
     chain = Chain(tuple(sorted(inp.items())), tuple(stages))
     if state is not None:
@@ -432,7 +472,7 @@ def generate_chain(graph: SortGraph, rng: random.Random, max_length: int, uses: 
         del state.history[:-HISTORY]
         if not state.covered:
             drawable = graph.__dict__.setdefault("_drawable", [n for n, s in graph.specs.items() if graph.runnable(s)])
-            state.covered = all(uses.get(n, 0) for n in drawable)
+            state.covered = all(uses.get(n, 0) for n in drawable if state.cover is None or n in state.cover)
     return chain
 
 

@@ -6,6 +6,7 @@ import collections
 import contextlib
 import dataclasses
 import json
+import math
 import os
 import random
 import sys
@@ -140,7 +141,8 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
          minimise_failures: bool = True, grad: bool = True, vmap: bool = True,
          time_budget_s: float | None = None, progress: Callable[[str], None] | None = None,
          max_minimise_trials: int = 12, minimise_budget_s: float | None = None, journal: str | os.PathLike | None = None,
-         whole_chain_fraction: float = WHOLE_CHAIN_FRACTION) -> FuzzRun:
+         whole_chain_fraction: float = WHOLE_CHAIN_FRACTION, workers: int = 1, coverage_share: float = 1.0,
+         _part: tuple[int, int] | None = None) -> FuzzRun:
     """Generate and run ``n_chains`` random typed chains of length ``1..max_length``.
 
     Args:
@@ -155,46 +157,144 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
       whole_chain_fraction: the fraction of chains also compiled whole (``jit(vmap(chain))``
         and ``grad`` of the whole chain) besides the per-stage programs every chain runs
         through; drawn per chain from ``(seed, index)``, so the chains themselves do not change.
+      workers: processes running chains side by side (the whole registry only: ``specs`` must
+        be ``None``). Worker ``w`` of ``W`` runs the chains ``w, w + W, ...``, drawn from its own
+        generator (seeded by ``(seed, w, W)``), whose coverage phase draws every ``W``-th op
+        (by name) first, so the workers share the coverage; each has its own compiled programs
+        (and shares the persistent compile cache when one is on). Failures are minimised in
+        this process afterwards. ``workers=1``: one process, the chains of ``seed`` as before.
+      coverage_share: the share of the drawable ops the coverage phase draws first (a subset
+        drawn from ``seed``); after it, chains repeat what was drawn and reach other ops at
+        the generator's ``NEW_COMBO_RATE`` only. 1: every op (a full run); a bounded run (CI)
+        takes a share to leave the compile-bound coverage phase early.
     """
     if not 0.0 <= whole_chain_fraction <= 1.0:
         raise ValueError(f"fuzz: argument 'whole_chain_fraction' must be in [0, 1], got {whole_chain_fraction!r}")
+    if not (isinstance(workers, int) and workers >= 1):
+        raise ValueError(f"fuzz: argument 'workers' must be an int >= 1, got {workers!r}")
+    if workers > 1 and specs is not None:
+        raise ValueError("fuzz: argument 'workers' must be 1 when 'specs' is given (worker processes draw from the "
+                         "registry they import)")
+    if not 0.0 < coverage_share <= 1.0:
+        raise ValueError(f"fuzz: argument 'coverage_share' must be in (0, 1], got {coverage_share!r}")
+    if workers > 1:
+        return _fuzz_parallel(n_chains, max_length, seed, workers=workers, minimise_failures=minimise_failures,
+                              grad=grad, vmap=vmap, time_budget_s=time_budget_s, progress=progress,
+                              max_minimise_trials=max_minimise_trials, minimise_budget_s=minimise_budget_s,
+                              journal=journal, whole_chain_fraction=whole_chain_fraction,
+                              coverage_share=coverage_share)
     specs = list(_default_specs() if specs is None else specs)
     graph = SortGraph(specs, pool_sorts(specs))
     runner = Runner(specs, grad=grad, vmap=vmap)
     run = FuzzRun(seed, max_length, {s.name: s for s in specs}, graph, whole_chain_fraction=whole_chain_fraction)
     run.stats = runner.stats
-    rng = random.Random(seed)
+    w, n_w = _part or (0, 1)
+    rng = random.Random(seed) if n_w == 1 else random.Random(f"{seed}/{w}/{n_w}")
     state = DrawState()
+    if n_w > 1 or coverage_share < 1.0:
+        drawable = sorted(n for n, s in graph.specs.items() if graph.runnable(s))
+        if coverage_share < 1.0:
+            random.Random(f"cover:{seed}").shuffle(drawable)
+            drawable = sorted(drawable[: max(1, math.ceil(coverage_share * len(drawable)))])
+        state.cover = frozenset(drawable[w::n_w])
+    tag = f"[worker {w}] " if n_w > 1 else ""
     t0, c0 = time.perf_counter(), time.process_time()
-    for k in range(n_chains):
+    for i in range(n_chains):
+        k = w + n_w * i   # the chain's index in the whole run
         if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
-            run.stopped_early = f"time budget {time_budget_s:.0f} s reached after {k} chains"
+            run.stopped_early = f"{tag}time budget {time_budget_s:.0f} s reached after {i} chains"
             break
         chain = generate_chain(graph, rng, max_length, state)
+        if state.covered and "coverage_chains" not in runner.stats:
+            runner.stats["coverage_chains"] = i + 1   # the coverage phase ended with this chain
         whole = random.Random(f"{seed}:{k}").random() < whole_chain_fraction
         runner.release_if_needed()
         o = runner.run(chain, whole=whole)
         run.results.append((chain, o))
         _keep_prefix(state, chain, o)
         if journal is not None:
+            line = json.dumps({"chain": chain.to_json(), "outcome": o.to_json(), "index": k}, default=str) + "\n"
             with open(journal, "a") as fh:
-                fh.write(json.dumps({"chain": chain.to_json(), "outcome": o.to_json()}, default=str) + "\n")
-        if progress and (k + 1) % 25 == 0:
+                fh.write(line)   # one write per line: workers append to the same journal
+        if progress and (i + 1) % 25 == 0:
             cc = {c: n for c, n in run.class_counts().items() if n}
-            progress(f"fuzz: {k + 1}/{n_chains} chains, {time.perf_counter() - t0:.0f} s, "
+            progress(f"{tag}fuzz: {i + 1}/{n_chains} chains, {time.perf_counter() - t0:.0f} s, "
                      f"ops executed {100 * run.executed_fraction():.0f} %, failures {cc}")
     run.seconds = time.perf_counter() - t0
     run.cpu_seconds = time.process_time() - c0
     if minimise_failures:
-        t1 = time.perf_counter()
-        for sig, items in run.signatures().items():
-            if minimise_budget_s is not None and time.perf_counter() - t1 > minimise_budget_s:
-                run.stopped_early += (("; " if run.stopped_early else "") +
-                                      f"minimising stopped after {minimise_budget_s:.0f} s")
-                break
-            c, o = items[0]
-            run.minimised[sig] = minimise(runner, c, o, max_trials=max_minimise_trials)
-        run.minimise_seconds = time.perf_counter() - t1
+        _minimise_all(run, runner, max_minimise_trials, minimise_budget_s)
+    return run
+
+
+def _minimise_all(run: FuzzRun, runner: Runner, max_trials: int, budget_s: float | None) -> None:
+    t1 = time.perf_counter()
+    for sig, items in run.signatures().items():
+        if budget_s is not None and time.perf_counter() - t1 > budget_s:
+            run.stopped_early += (("; " if run.stopped_early else "") + f"minimising stopped after {budget_s:.0f} s")
+            break
+        c, o = items[0]
+        run.minimised[sig] = minimise(runner, c, o, max_trials=max_trials)
+    run.minimise_seconds = time.perf_counter() - t1
+
+
+def _worker(kw: dict):
+    """One worker process of a parallel run: the same JAX settings as the parent, its share of
+    the chains; returns what the parent merges (chains and outcomes pickle)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", kw.pop("x64"))
+    cache = kw.pop("compile_cache")
+    if cache:
+        from .._cache import enable_compile_cache
+
+        enable_compile_cache(cache)
+    quiet = not kw.pop("print_progress")
+    run = fuzz(**kw, minimise_failures=False, progress=None if quiet else (lambda t: print(t, flush=True)))
+    return run.results, run.stats, run.seconds, run.cpu_seconds, run.stopped_early
+
+
+def _fuzz_parallel(n_chains, max_length, seed, *, workers, minimise_failures, grad, vmap, time_budget_s, progress,
+                   max_minimise_trials, minimise_budget_s, journal, whole_chain_fraction, coverage_share) -> FuzzRun:
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    import jax
+
+    specs = list(_default_specs())
+    graph = SortGraph(specs, pool_sorts(specs))
+    run = FuzzRun(seed, max_length, {s.name: s for s in specs}, graph, whole_chain_fraction=whole_chain_fraction)
+    cache = jax.config.jax_compilation_cache_dir if jax.config.jax_enable_compilation_cache else None
+    jobs = []
+    for w in range(workers):
+        n_w = len(range(w, n_chains, workers))
+        jobs.append({"n_chains": n_w, "max_length": max_length, "seed": seed, "grad": grad, "vmap": vmap,
+                     "time_budget_s": time_budget_s, "journal": None if journal is None else str(journal),
+                     "whole_chain_fraction": whole_chain_fraction, "_part": (w, workers),
+                     "coverage_share": coverage_share,
+                     "x64": bool(jax.config.jax_enable_x64), "compile_cache": cache,
+                     "print_progress": progress is not None})
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+        outs = [f.result() for f in [ex.submit(_worker, j) for j in jobs]]
+    run.seconds = time.perf_counter() - t0
+    merged: list = []
+    for w, (results, stats, _, cpu, stopped) in enumerate(outs):
+        merged += [(w + workers * i, c, o) for i, (c, o) in enumerate(results)]
+        run.cpu_seconds += cpu
+        for key, v in stats.items():
+            if key == "coverage_chains":
+                run.stats.setdefault("coverage_chains_per_worker", []).append(v)
+            elif isinstance(v, (int, float)) and not isinstance(v, bool):
+                run.stats[key] = run.stats.get(key, 0) + v
+            else:
+                run.stats[key] = v
+        if stopped:
+            run.stopped_early += ("; " if run.stopped_early else "") + stopped
+    run.results = [(c, o) for _, c, o in sorted(merged, key=lambda t: t[0])]
+    run.stats["workers"] = workers
+    if minimise_failures:
+        _minimise_all(run, Runner(specs, grad=grad, vmap=vmap), max_minimise_trials, minimise_budget_s)
     return run
 
 
@@ -400,6 +500,8 @@ def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "")
                  f"{st.get('eager_calls', 0)} ({100 * st.get('eager_hits', 0) / max(1, st.get('eager_calls', 0)):.0f} %;"
                  f" staged: {st.get('staged_prefix_hits', 0)}) |")
         L.append(f"| persistent compile cache | {st.get('compile_cache', 'not enabled (library call)')} |")
+        L.append(f"| worker processes | {st.get('workers', 1)} (coverage phase: "
+                 f"{st.get('coverage_chains_per_worker', st.get('coverage_chains', 'not ended'))} chains) |")
     if run.stopped_early:
         L.append(f"| stopped early | {run.stopped_early} |")
     L.append("")
@@ -490,11 +592,12 @@ def cli_main(args) -> int:
     journal = Path(args.out) / "chains.jsonl"
     journal.write_text("")
     cache_note = _compile_cache(getattr(args, "compile_cache", None))
+    workers = getattr(args, "workers", None) or min(2, os.cpu_count() or 1)
     run = fuzz(args.chains, args.length, args.seed, time_budget_s=args.minutes * 60 if args.minutes else None,
                progress=lambda s: print(s, flush=True), grad=not args.no_grad, journal=journal,
                minimise_budget_s=max(120.0, 0.15 * 60 * args.minutes) if args.minutes else None,
                whole_chain_fraction=WHOLE_CHAIN_FRACTION if getattr(args, "whole_chain", None) is None
-               else args.whole_chain)
+               else args.whole_chain, workers=workers)
     run.stats["compile_cache"] = cache_note
     path = write_report(run, args.out, command=cmd)
     cc = {k: v for k, v in run.class_counts().items() if v}

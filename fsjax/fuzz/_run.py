@@ -138,9 +138,14 @@ def classify_exception(e: BaseException, op: str, stage: int, mode: str) -> tupl
         if isinstance(e, TypeError) and _SORT_REFUSAL.search(head):
             return _Fail("TYPEMISS", stage, op, mode, "op refused a sort the checker accepted", _first_line(e))
         return ("refused", _first_line(e))
-    if "Equinox" in type(e).__name__ or (type(e).__name__ == "XlaRuntimeError" and "equinox" in msg.lower()):
-        if names_op:
-            return ("refused", _first_line(e))
+    if "Equinox" in type(e).__name__ or (type(e).__name__ in ("XlaRuntimeError", "JaxRuntimeError")
+                                          and "equinox" in msg.lower()):
+        # an op's own run-time refusal (``equinox.error_if``): under jit it arrives wrapped in the
+        # runtime's callback traceback; the op's message is on the EquinoxRuntimeError line
+        m = re.search(r"EquinoxRuntimeError: ([^\n]+)", msg)
+        text = m.group(1) if m else head
+        if op in text:
+            return ("refused", f"{type(e).__name__}: {text[:300]}")
     return _Fail("SUSPECT", stage, op, mode, f"{type(e).__name__}: {_norm(msg.strip().split(chr(10))[0])}",
                  _first_line(e))
 
@@ -362,6 +367,7 @@ class Runner:
 
     # -- checks on one eager stage output ------------------------------------
     def _check_stage(self, i: int, spec, ins: tuple, out, kp: dict, params: tuple) -> None:
+        import jax.numpy as jnp
         import numpy as np
 
         op = spec.name
@@ -374,7 +380,11 @@ class Runner:
         want = _declared_batch(spec, params)
         if bshape != want:
             raise _Fail("CONTRACT", i, op, "eager", f"output batch shape {bshape}, expected {want}")
-        in_dt = float_dtype(ins[0]) if float_dtype(ins[0]) else None
+        # the inputs' floating dtypes promoted together (a float64 template beside a float32 image
+        # gives float64, as JAX promotes; the fifth run's false CONTRACT in shape_locate, whose
+        # template came from distance_transform of a Region: float64 with x64 on)
+        dts = [d for d in (float_dtype(a) for a in ins) if d]
+        in_dt = str(jnp.result_type(*dts)) if dts else None
         out_dt = float_dtype(out)
         if in_dt and out_dt and in_dt != out_dt:
             raise _Fail("CONTRACT", i, op, "eager", f"dtype not kept ({in_dt} in, {out_dt} out)")
@@ -448,6 +458,8 @@ class Runner:
             return False
         if op in DOCUMENTED_NAN:   # NaN (not inf) where the op documents "undefined"
             return all(not (fl and np.any(np.isinf(a))) for a, _, fl, _ in _leaves_with_mask(out))
+        if op in DOCUMENTED_OVERFLOW:   # +-inf (not NaN) where the op documents overflow
+            return all(not (fl and np.any(np.isnan(a))) for a, _, fl, _ in _leaves_with_mask(out))
         rule = DOCUMENTED_NEG_INF.get(op)
         if rule is None:
             return False
@@ -594,7 +606,7 @@ class Runner:
         out.times["whole_traced"] = time.perf_counter() - t_start
         if differentiable:
             t_start = time.perf_counter()
-            self._grad(chain, f, x, knobs, None)
+            self._grad(chain, f, x, knobs, (stage_ins, eager_outs))
             out.times["whole_grad"] = time.perf_counter() - t_start
 
     # -- the traced ways, stage by stage -------------------------------------------
@@ -739,6 +751,10 @@ class Runner:
                 raise _Fail("RECOMPILE", i, st.op, "grad", "a cached stage program called again with the same shapes "
                             "compiled again")
             if any(not bool(np.all(np.isfinite(np.asarray(g)))) for g in (*gx, gk)):
+                if not (_all_finite(xin) and _all_finite(eager_outs[i])):
+                    # the stage's own forward is not finite (a documented -inf/inf/NaN passed the
+                    # forward checks): its gradient is undefined, not a GRADNAN ("finite forward")
+                    return
                 raise _Fail("GRADNAN", i, st.op, "grad", "NaN gradient, finite forward")
             ct = list(gx)
 
@@ -814,8 +830,11 @@ class Runner:
         return True
 
     def _traced_error(self, e: BaseException, chain: Chain, mode: str, out: Outcome) -> None:
-        # which stage? the message names ops; blame the first op named, else the chain
-        op = next((s.op for s in chain.stages if s.op in str(e)[:400]), None)
+        # which stage? the message names ops; blame the first op named, else the chain (an op's
+        # run-time error under jit names it on the EquinoxRuntimeError line, after the traceback)
+        m = re.search(r"EquinoxRuntimeError: ([^\n]+)", str(e))
+        head = m.group(1) if m else str(e)[:400]
+        op = next((s.op for s in chain.stages if s.op in head), None)
         stage = next((i for i, s in enumerate(chain.stages) if s.op == op), None)
         r = classify_exception(e, op or "\0", stage, mode)
         if isinstance(r, _Fail):
@@ -833,6 +852,10 @@ class Runner:
             if self._grad_nan(sub, self._traced(sub, chain.inp["dtype"]), x, knobs[:k]):
                 n = k
                 break
+        if y_last is not None:   # (stage inputs, eager outputs): as the stage-by-stage grad, a stage
+            ins, outs = y_last    # whose own forward is not finite has no "finite forward"
+            if not (_all_finite(ins[n - 1][chain.stages[n - 1].slot]) and _all_finite(outs[n - 1])):
+                return
         raise _Fail("GRADNAN", n - 1, chain.stages[n - 1].op, "grad", "NaN gradient, finite forward")
 
     def _grad_nan(self, chain: Chain, f, x, knobs) -> bool | None:
@@ -899,6 +922,20 @@ def _output_weights(y) -> list:
     return out
 
 
+def _all_finite(tree) -> bool:
+    """Every inexact leaf of ``tree`` finite (where its ``valid`` mask applies)."""
+    import numpy as np
+
+    for a, m, fl, _ in _leaves_with_mask(tree):
+        if fl:
+            ok = np.isfinite(a)
+            if m is not None:
+                ok |= ~m
+            if not ok.all():
+                return False
+    return True
+
+
 def _avals(tree) -> tuple:
     """Tree structure (static fields included) and every leaf's shape, dtype and weak type."""
     import jax
@@ -938,6 +975,12 @@ DOCUMENTED_NEG_INF = {
 # only NaN is explained, an inf still fails
 DOCUMENTED_NAN = frozenset({
     "sobel_dir",   # "NaN where the gradient is zero up to rounding (a flat area); mask it with sobel_amp"
+    "absolute_phase",   # "Negative codes (-1: undecidable; any code rounding below 0) give NaN"
+})
+# ops whose Image output documents +-inf where the result overflows the dtype (IEEE overflow of an
+# exponential, on input far outside [0, 1]); only infinities are explained, a NaN still fails
+DOCUMENTED_OVERFLOW = frozenset({
+    "exp_transform",   # "+-inf where (1 + c)^|x| overflows the dtype"
 })
 
 

@@ -264,6 +264,63 @@ def test_reuse_draws_fewer_distinct_stage_programs_than_the_null():
     assert ours[0] < 0.85 * null[0]
 
 
+def test_two_level_draw_bounds_new_combinations_and_knob_values(monkeypatch):
+    """The reuse phase draws a new (op, running sort, size, dtype) combination, an input off the
+    canonical size or new knob values at ``NEW_COMBO_RATE``, else one drawn before. Over the
+    whole registry (generation only), 600 chains after the coverage phase reach far fewer new
+    stage keys (op, knobs, parameters, sort, size, dtype: what the eager and traced programs
+    depend on) than the null, the one-level weighting (``NEW_COMBO_RATE = None``). Printed."""
+    import random
+
+    from fsjax.fuzz import _gen
+
+    specs = fsjax.list_ops()
+    graph = fz.SortGraph(specs, fz.pool_sorts(specs))
+
+    def new_keys(rate):
+        monkeypatch.setattr(_gen, "NEW_COMBO_RATE", rate)
+        rng, state = random.Random(0), _gen.DrawState()
+        keys = set()
+
+        def add(c):
+            n = 0
+            for k, st in enumerate(c.stages):
+                key = (st.op, st.a, st.b, st.params, graph.sorts_after(c.inp["sort"], c.stages[:k]), c.inp["size"],
+                       c.inp["dtype"])
+                n += key not in keys
+                keys.add(key)
+            return n
+
+        while not state.covered:
+            add(fz.generate_chain(graph, rng, 6, state))
+        return sum(add(fz.generate_chain(graph, rng, 6, state)) for _ in range(600))
+
+    ours, null = new_keys(0.05), new_keys(None)
+    print(f"new stage keys in 600 reuse-phase chains: {ours} (null, one-level weighting: {null})")
+    assert ours < 0.5 * null
+
+
+def test_workers_share_the_coverage_and_interleave(planted):
+    """Worker ``w`` of ``W`` (``fuzz(workers=W)`` runs each in its own process) covers every
+    ``W``-th op first and runs the chains ``w, w + W, ...``; the shares are disjoint and cover
+    the drawable ops. Run here in one process, generation and eager only."""
+    _, specs = planted
+    gen = [s for s in specs if s.name in ("gaussian", "otsu", "mean", "planted_odd_index")]
+    covers = []
+    for w in range(2):
+        run = fz.fuzz(3, 2, seed=4, specs=gen, grad=False, vmap=False, minimise_failures=False, _part=(w, 2))
+        assert len(run.results) == 3
+        names = {st.op for c, _ in run.results for st in c.stages}
+        covers.append(names)
+    graph = fz.SortGraph(gen, fz.pool_sorts(gen))
+    drawable = sorted(s.name for s in gen if graph.runnable(s))
+    assert covers[0] >= set(drawable[0::2]) and covers[1] >= set(drawable[1::2])
+    with pytest.raises(ValueError, match="fuzz: argument 'workers' must be 1 when 'specs' is given"):
+        fz.fuzz(2, 2, specs=gen, workers=2)
+    with pytest.raises(ValueError, match="fuzz: argument 'coverage_share' must be in"):
+        fz.fuzz(2, 2, specs=gen, coverage_share=0.0)
+
+
 def test_programs_released_near_the_map_limit(planted, monkeypatch):
     """Past half of vm.max_map_count the runner drops its compiled programs (the second full run
     died at the limit: "Failed to materialize symbols"); the next chain compiles again, cleanly."""
@@ -367,28 +424,35 @@ def test_generated_chains_type_correct_and_report(planted, tmp_path):
 # the bounded fuzz CI runs: a fixed seed over the whole registry
 # ---------------------------------------------------------------------------
 
-BOUNDED_CHAINS = 16
+BOUNDED_CHAINS = 32
 BOUNDED_LENGTH = 4
 BOUNDED_SEED = 2026
+BOUNDED_COVERAGE = 0.05   # the coverage phase draws 5 % of the ops (12 of ~230, drawn from the seed) first
 
 
 @pytest.mark.slow
 def test_bounded_fuzz_whole_registry():
-    """A fixed-seed fuzz over every registered op fails on any blocking class.
+    """A fixed-seed fuzz over the registry fails on any blocking class (SUSPECT, TYPEMISS,
+    MISMATCH, SILENT_OVERFLOW, GRADNAN).
 
-    Sized for the suite: cold (CI's compile cache starts empty), these 16 chains of length <= 4
-    took 81 s of CPU time (145 s wall) on the 2-core development machine at load average 9
-    (docs/fuzz.md). All of them are in the generator's coverage phase (every stage a new op on
-    the canonical size), which is compile-bound: the reuse phase, 3x faster, starts after about
-    110 chains, beyond a CI budget. Chain 2 also runs compiled whole. Each failure's replayable
-    chain is in the assertion message.
+    Sized for the suite (docs/fuzz.md): a cold coverage phase costs ~4 s of CPU per chain, so
+    the run covers a seeded 5 % of the ops first (``coverage_share``) and then repeats what it
+    drew, reaching other ops, inputs and knob values at the generator's ``NEW_COMBO_RATE``:
+    32 chains of length <= 4 (16 before, all in the coverage phase). Chains whose draw says so
+    also run compiled whole. Each failure's replayable chain is in the assertion message.
     """
-    run = fz.fuzz(BOUNDED_CHAINS, BOUNDED_LENGTH, seed=BOUNDED_SEED, minimise_failures=False)
+    import random
+
+    run = fz.fuzz(BOUNDED_CHAINS, BOUNDED_LENGTH, seed=BOUNDED_SEED, minimise_failures=False,
+                  coverage_share=BOUNDED_COVERAGE)
     print(f"bounded fuzz: {len(run.results)} chains in {run.seconds:.0f} s ({run.cpu_seconds:.0f} s CPU), "
+          f"coverage phase {run.stats.get('coverage_chains')} chains, "
           f"stage programs {run.stats['stage_calls']} calls, {run.stats['stage_hits']} reused, "
           f"{run.stats['whole']} chain(s) compiled whole, ops executed {100 * run.executed_fraction():.0f} %")
     assert len(run.results) == BOUNDED_CHAINS
     assert sum(len(o.executed) for _, o in run.results) >= BOUNDED_CHAINS  # it did run ops
-    assert run.stats["stage_calls"] >= BOUNDED_CHAINS and run.stats["whole"] >= 1  # staged; one chain ran whole
+    assert run.stats.get("coverage_chains"), "the coverage phase did not end: no reuse phase"
+    whole = sum(random.Random(f"{BOUNDED_SEED}:{k}").random() < 0.05 for k in range(BOUNDED_CHAINS))
+    assert run.stats["stage_calls"] >= BOUNDED_CHAINS and run.stats["whole"] == whole >= 1
     bad = [f"{o.signature}\n  {json.dumps(c.to_json())}" for c, o in run.failures if o.cls in fz.BLOCKING]
     assert not bad, "\n".join(bad)

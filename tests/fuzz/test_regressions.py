@@ -182,3 +182,137 @@ def test_sobel_dir_documented_nan_on_flat_areas(monkeypatch):
     monkeypatch.setattr(_run, "DOCUMENTED_NAN", frozenset())   # the null: without the rule
     o = fz.Runner([fsjax.get_op("sobel_dir")], grad=False, vmap=False).run(c)
     assert (o.status, o.cls) == ("failed", "NONFINITE"), o
+
+
+# render_silhouette with a small capacity under jit: the rasteriser's candidate buffer overflowed
+# and the Region came back with holes (MISMATCH jit vs eager in the fourth full run: 456 of 768
+# pixels; an eager call sizes the buffer from the data). A Region has no flag and a bool no NaN:
+# fixed in ops/measure3d/_render.py, the traced call raises through equinox.error_if (the fuzzer
+# counts that as the op's own refusal, like an eager ValueError).
+SILHOUETTE_CAP = {"input": {"dtype": "float64", "kind": "scene", "size": [16, 16], "sort": "Mesh", "variant": 0},
+                  "stages": [{"op": "render_silhouette", "a": None, "b": None, "params": {"capacity": 4},
+                              "slot": 0}]}
+
+
+def test_render_silhouette_overflow_fails_closed_under_jit():
+    import numpy as np
+
+    c = fz.Chain.from_json(SILHOUETTE_CAP)
+    mesh = fz.build_input(fsjax.Mesh, "scene", (16, 16), "float64")
+    cam = fz.build_input(fsjax.Camera, "scene", (16, 16), "float64", 1)   # the pool's second input
+    full = np.asarray(fsjax.ops.render_silhouette(mesh, cam).data)
+    small = np.asarray(fsjax.ops.render_silhouette(mesh, cam, capacity=4).data)   # eager: sized from the data
+    np.testing.assert_array_equal(small, full)
+    assert 0 < full.sum() < full.size
+    # the minimised chain, eager and under jit: refused under the trace (the op's own run-time
+    # error, raised only when the buffer overflowed), not a failure; before the fix: MISMATCH
+    o = fz.Runner([fsjax.get_op("render_silhouette")], grad=False, vmap=False).run(c)
+    assert o.status == "ok" and o.refused_traced and "render_silhouette: capacity 4 exceeded" in o.refused_traced[1], o
+
+
+# shape_locate with a template of vertical stripes (graycode_decode's column codes): MISMATCH jit
+# vs eager in the warm re-run of the fourth full run (row 2.1e-5, col 1e-3 px). Not rounding in a
+# score: every edge is parallel, so the row is undetermined; the refinement's normal matrix was
+# singular (its smallest eigenvalue was the 1e-9 regularisation at every step) and the
+# regularisation chose a pose that rounding moved. Fixed in ops/matching/_shape.py: an instance
+# whose normal matrix does not determine every pose direction is not converged (no instance).
+SHAPE_STRIPES = {"input": {"dtype": "float64", "kind": "scene", "size": [16, 16], "sort": "GrayStack", "variant": 0},
+                 "stages": [{"op": "graycode_decode", "a": 0.5, "b": None, "params": {}, "slot": 0},
+                            {"op": "shape_locate", "a": 0.8, "b": 0.4, "params": {}, "slot": 1}]}
+
+
+def test_shape_locate_parallel_edges_fail_closed(monkeypatch):
+    """No instance on the stripes; the null (the determinacy rule off) reports one there, at a
+    row that the regularisation chose. Instances of a template with edges in every direction
+    are unchanged: tests/ops/test_matching.py's alignment scene (three instances within 0.1 px)
+    and the docstring example pass with the rule."""
+    import numpy as np
+
+    from fsjax.ops.matching import _shape
+
+    c = fz.Chain.from_json(SHAPE_STRIPES)
+    gd, sl = fsjax.get_op("graycode_decode"), fsjax.get_op("shape_locate")
+    st0, st1 = c.stages
+    tpl = gd.fn(fz.build_input(fsjax.GrayStack, "scene", (16, 16), "float64"), **gd.knob_params(st0.a, st0.b))
+    t = np.asarray(tpl.data)
+    assert np.all(t == t[:1]) and np.ptp(t) > 0   # constant along rows: vertical stripes only
+    img = fz.build_input(fsjax.Image, "scene", (16, 16), "float64", 1)   # the pool's other input
+    kp = sl.knob_params(st1.a, st1.b)
+    m = sl.fn(img, tpl, **kp)
+    assert not bool(np.asarray(m.valid).any())   # undetermined: nothing reported
+    monkeypatch.setattr(_shape, "DET_MIN", -1.0)   # the null: the rule off
+    m0 = sl.fn(img, tpl, **kp, max_points=255)   # another static argument: traced again, without the rule
+    assert bool(m0.valid[0]) and float(m0.score[0]) > 0.9   # a confident instance, row arbitrary
+
+
+# exp_transform on the pool's very large image (the scene x 1e6, float32): (1 + c)^x overflows to
+# +inf (NONFINITE in the cold run of the fifth full run, docs/fuzz.md). IEEE overflow of the
+# exponential far outside the Image range [0, 1], as numpy.expm1 gives; now documented in its
+# docstring and read by the fuzzer (fsjax.fuzz._run.DOCUMENTED_OVERFLOW: infinities only, a NaN
+# still fails).
+EXP_LARGE = {"input": {"dtype": "float32", "kind": "large", "size": [16, 16], "sort": "Image", "variant": 0},
+             "stages": [{"op": "exp_transform", "a": 0.1, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_exp_transform_overflow_is_documented(monkeypatch):
+    import numpy as np
+
+    from fsjax.fuzz import _run
+
+    c = fz.Chain.from_json(EXP_LARGE)
+    spec = fsjax.get_op("exp_transform")
+    x = fz.build_input(fsjax.Image, "large", (16, 16), "float32")
+    kp = spec.knob_params(0.1, None)
+    y = np.asarray(spec.fn(x, **kp).data)
+    xs = np.asarray(x.data, np.float64)
+    over = xs * np.log1p(kp["c"]) > np.log(np.finfo(np.float32).max)
+    assert over.any() and np.all(np.isposinf(y[over])) and np.all(np.isfinite(y[~over]))
+    assert not np.isnan(y).any()
+    # with grad: the fifth full run's GRADNAN (exp_transform -> shi_tomasi -> log -> measure_pairs):
+    # the pull-back through an overflowed (+inf) value is undefined, and the stage's forward is not
+    # finite, so it is no "finite forward, NaN gradient" (the fuzzer's stage-by-stage grad now
+    # blames a stage only when its input and output are finite)
+    assert fz.Runner([spec], vmap=False).run(c).status == "ok"
+    assert fz.Runner([spec], vmap=False).run(c, whole=True).status == "ok"   # and compiled whole (replay)
+    monkeypatch.setattr(_run, "DOCUMENTED_OVERFLOW", frozenset())   # the null: without the rule
+    o = fz.Runner([spec], grad=False, vmap=False).run(c)
+    assert (o.status, o.cls) == ("failed", "NONFINITE"), o
+
+
+# shape_locate with a float32 image and a float64 template (the fifth run: `Image[spike f32] ->
+# threshold -> region_dilate -> distance_transform -> shape_locate#1`; the distance map of a Region
+# is float64 with x64 on) returned float64: JAX's promotion of mixed inputs, not a contract break.
+# The fuzzer compared the output with the first input's dtype only (false CONTRACT); now with the
+# inputs' dtypes promoted together.
+def test_dtype_contract_promotes_mixed_inputs():
+    from fsjax.fuzz._run import _Fail
+
+    spec = fsjax.get_op("add_images")
+    a32 = fz.build_input(fsjax.Image, "scene", (8, 8), "float32")
+    a64 = fz.build_input(fsjax.Image, "scene", (8, 8), "float64")
+    runner = fz.Runner([spec], grad=False, vmap=False)
+    out = fsjax.Image(a64.data)   # a float64 output, as shape_locate gave (the rule, not add_images, is tested)
+    runner._check_stage(0, spec, (a32, a64), out, {}, ())   # promoted: kept
+    with pytest.raises(_Fail, match="dtype not kept"):   # two float32 inputs, a float64 output: broken
+        runner._check_stage(0, spec, (a32, a32), out, {}, ())
+
+
+# absolute_phase gives NaN where a code is negative (-1: undecidable), as its docstring says; the fifth run
+# reported NONFINITE (`Color -> color_channel -> fft_phase -> absolute_phase#1`: codes from a phase
+# image). The fuzzer reads the documented NaN (DOCUMENTED_NAN); an inf would still fail.
+def test_absolute_phase_documented_nan(monkeypatch):
+    import numpy as np
+
+    from fsjax.fuzz import _run
+    from fsjax.fuzz._run import _Fail
+
+    wrapped = fsjax.Image(jnp.zeros((2, 2)))
+    code = fsjax.Image(jnp.asarray([[0.0, -1.0], [1.0, -3.0]]))
+    out = fsjax.ops.absolute_phase(wrapped, code, code)
+    d = np.asarray(out.data)
+    assert np.array_equal(np.isnan(d), np.asarray(code.data) < 0)   # NaN exactly at the negative codes
+    runner = fz.Runner([fsjax.get_op("absolute_phase")], grad=False, vmap=False)
+    runner._check_finite(0, "absolute_phase", out, "eager", ())
+    monkeypatch.setattr(_run, "DOCUMENTED_NAN", frozenset())   # the null: without the rule
+    with pytest.raises(_Fail, match="NaN in the output"):
+        runner._check_finite(0, "absolute_phase", out, "eager", ())

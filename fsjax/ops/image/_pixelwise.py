@@ -287,7 +287,10 @@ def exp_transform(img: Image, /, *, c: float = 10.0) -> Image:
       c: curvature, > 0 (knob ``a``, log-mapped to [0.1, 100]); default 10.
 
     Returns:
-      ``Image``; ``[0, 1]`` maps onto ``[0, 1]``.
+      ``Image``; ``[0, 1]`` maps onto ``[0, 1]``. Far outside ``[0, 1]`` the curve overflows:
+      ``+inf`` (``-inf`` on the odd extension) where ``|x| log(1 + c)`` exceeds the log of the
+      dtype's largest value (88.7 in float32, 709.8 in float64), as ``numpy.expm1`` does;
+      never NaN.
 
     Reference: ``numpy.expm1(x * numpy.log1p(c)) / c``, matched to 1e-15 in float64;
     ``exp_transform(log_transform(x, c), c) == x`` to 1e-15.

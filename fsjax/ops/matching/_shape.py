@@ -286,13 +286,28 @@ def _solve3(M, b):
     return jnp.where(ok, adj @ b / jnp.where(ok, det, 1.0), jnp.nan)
 
 
+# the refinement's normal matrix (angle as px at the outermost model point) must determine every
+# pose direction: det M >= DET_MIN (tr M)^3, so the smallest eigenvalue is >= DET_MIN tr M. The
+# workpiece of the docstring example: det / tr^3 >= 7.5e-3 at every step of every candidate;
+# vertical stripes (no row information): |det| / tr^3 <= 3e-18, rounding
+DET_MIN = 1e-6
+
+
 def _ls_refine(G, off, dirs, valid, y, x, th, gmin, n_iter: int, tol: float):
     """Gauss-Newton on ``sum_i w_i (n_i . dp_i - delta_i)^2``, re-detecting edges each step.
 
     ``delta_i`` is the sub-pixel offset, along the rotated model normal, of the
     image edge next to model point ``i`` (:func:`_edge_offset`, +-2 grid
     lines); the weights are robust (see below). Returns the pose, whether the
-    update fell below ``tol`` (px) within ``n_iter`` steps, and the summed weight.
+    update fell below ``tol`` (px) within ``n_iter`` steps *and* the last step's normal
+    matrix determined every pose direction, and the summed weight.
+
+    Determined: ``det M >= DET_MIN * (tr M)^3`` for the weighted normal matrix ``M`` (row,
+    col, and the angle as px at the outermost model point: commensurate units). Edges that are all
+    parallel (stripes) leave the position along them undetermined (the aperture problem):
+    ``M`` is singular up to rounding, the small regularisation alone picks a pose there, and
+    a rounding-level change of the input moves it (a chain fuzzer MISMATCH between eager and
+    compiled calls of 1e-3 px). Such an instance is not converged (fails closed).
     """
     dt = G.dtype
     rmax = jnp.max(jnp.where(valid, jnp.hypot(off[:, 0], off[:, 1]), 0.0))
@@ -318,24 +333,32 @@ def _ls_refine(G, off, dirs, valid, y, x, th, gmin, n_iter: int, tol: float):
         A = jnp.stack([n[:, 0], n[:, 1], n[:, 0] * jr + n[:, 1] * jc], -1)
         M = (A * w[:, None]).T @ A
         b = (A * w[:, None]).T @ delta
-        M = M + jnp.eye(3, dtype=dt) * (1e-9 * (jnp.trace(M) + 1.0))
+        tr = jnp.trace(M)
+        # determined: the normal matrix with the angle as px at the outermost point (commensurate
+        # with row and col) has det >= DET_MIN tr^3
+        sc = jnp.stack([1.0, 1.0, 1.0 / jnp.maximum(rmax, 1.0)]).astype(dt)
+        Ms = M * sc[:, None] * sc[None, :]
+        det = Ms[0, 0] * (Ms[1, 1] * Ms[2, 2] - Ms[1, 2] * Ms[2, 1]) \
+            - Ms[0, 1] * (Ms[1, 0] * Ms[2, 2] - Ms[1, 2] * Ms[2, 0]) + Ms[0, 2] * (Ms[1, 0] * Ms[2, 1] - Ms[1, 1] * Ms[2, 0])
+        determined = det >= DET_MIN * jnp.trace(Ms) ** 3
+        M = M + jnp.eye(3, dtype=dt) * (1e-9 * (tr + 1.0))
         upd = _solve3(M, b)
-        return (y + upd[0], x + upd[1], th + upd[2]), upd, jnp.sum(w)
+        return (y + upd[0], x + upd[1], th + upd[2]), upd, jnp.sum(w), determined
 
     def cond(c):
-        i, _, upd, _ = c
+        i, _, upd, _, _ = c
         move = jnp.maximum(jnp.abs(upd[0]), jnp.maximum(jnp.abs(upd[1]), jnp.abs(upd[2]) * rmax))
         return (i < n_iter) & (move > tol)
 
     def body(c):
-        i, pose, _, _ = c
-        pose, upd, nw = step(pose)
-        return i + 1, pose, upd, nw
+        i, pose, _, _, _ = c
+        pose, upd, nw, det_ok = step(pose)
+        return i + 1, pose, upd, nw, det_ok
 
-    init = (0, (y, x, th), jnp.full(3, jnp.inf, dt), jnp.asarray(0.0, dt))
-    i, pose, upd, nw = jax.lax.while_loop(cond, body, init)
+    init = (0, (y, x, th), jnp.full(3, jnp.inf, dt), jnp.asarray(0.0, dt), jnp.asarray(False))
+    i, pose, upd, nw, det_ok = jax.lax.while_loop(cond, body, init)
     move = jnp.maximum(jnp.abs(upd[0]), jnp.maximum(jnp.abs(upd[1]), jnp.abs(upd[2]) * rmax))
-    return pose, move <= tol, nw
+    return pose, (move <= tol) & det_ok, nw
 
 
 # ---------------------------------------------------------------------------
@@ -516,7 +539,10 @@ def shape_locate(img: Image, template: Image, /, *, min_score: float = 0.8, min_
     gradient, noise 0.01) the tests find all three within 0.1 px and 0.1 deg
     and no decoy. Fails closed under occlusion: the score falls with the
     hidden fraction of model points and the instance is dropped (not
-    mislocated) once it is below ``min_score``. No scale search.
+    mislocated) once it is below ``min_score``. Fails closed on a template whose edges do
+    not fix every pose direction (all edges parallel, e.g. stripes: the position along them is
+    undetermined): the refinement's normal matrix is singular and no instance is reported
+    (before, the regularisation picked a pose that rounding moved by 1e-3 px). No scale search.
 
     Example:
       One workpiece rotated by 30 deg about a sub-pixel position:

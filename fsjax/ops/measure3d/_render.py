@@ -12,6 +12,7 @@ plane, from +col towards -row, i.e. counter-clockwise on screen) and ``elevation
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax.numpy as jnp
 
 from ..._checks import check_static_int
@@ -69,8 +70,13 @@ def render_silhouette(mesh: Mesh, camera: Camera, /, *, tile: int = 16, capacity
 
     Args:
       mesh: triangle mesh; camera: pinhole camera (zero distortion).
-      tile, capacity: static buffer sizing under ``jit`` (see :func:`render_depth`); after an
-        overflow a pixel is reported as covered only when a kept candidate covers it.
+      tile, capacity: static buffer sizing under ``jit`` (see :func:`render_depth`); an
+        eager call sizes the buffer from the measured demand and is always complete. A
+        ``Region`` has no flag and a bool no NaN, so a traced call whose candidates overflow
+        the buffer raises at run time through ``equinox.error_if`` ("render_silhouette:
+        capacity ... exceeded"; under ``vmap`` when any member overflows) instead of
+        returning a mask with holes; raise ``capacity`` (or use :func:`render_depth`, whose
+        overflowed pixels are NaN).
 
     Returns:
       ``Region`` ``(H, W)``.
@@ -86,7 +92,13 @@ def render_silhouette(mesh: Mesh, camera: Camera, /, *, tile: int = 16, capacity
     check_static_int("render_silhouette", "tile", tile, lo=1)
     check_static_int("render_silhouette", "capacity", capacity, lo=1)
     r = rasterize(mesh, camera, tile=tile, capacity=capacity)
-    return Region(r.alpha > 0)
+    # fail closed: after an overflow the kept candidates may miss covered pixels (a plausible
+    # mask with holes); a bool mask cannot be poisoned, so the traced call raises (eager calls
+    # size the buffer from the data and are never incomplete)
+    covered = eqx.error_if(r.alpha > 0, jnp.any(r.incomplete),
+                           f"render_silhouette: capacity {capacity} exceeded under jit (the candidate buffer "
+                           "overflowed; raise capacity)")
+    return Region(covered)
 
 
 @register(family="render", takes=Depth, gives=Image, differentiable=True,

@@ -29,7 +29,6 @@ complementary Gray-code light", Optics and Lasers in Engineering 50(4) (2012).
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -133,7 +132,7 @@ def absolute_phase(wrapped: Image, code: Image, code_shifted: Image, /) -> Image
     shifted code decides: ``m = floor((k2 + 1) / 2)`` if ``phi <= -pi/2``, ``m = floor((k2 + 1) / 2) - 1``
     if ``phi >= pi/2``, else ``k1``; the result is ``phi + pi + 2 pi m`` in ``[0, 2 pi K)``, i.e.
     ``2 pi (u_p + 0.5) / P``. A wrong ``m`` needs a phase error above pi/2 (a quarter period).
-    Codes of -1 (undecidable) give NaN. Signed radians, not in [0, 1].
+    Negative codes (-1: undecidable; any code rounding below 0) give NaN. Signed radians, not in [0, 1].
 
     Args:
         wrapped: wrapped phase in ``[-pi, pi]`` (:func:`wrapped_phase`).
