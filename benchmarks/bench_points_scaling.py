@@ -346,8 +346,12 @@ def main() -> None:
         wl, m, n = a.mem_case.split(",")
         print(json.dumps(mem_case(wl, m, int(n))))
         return
-    if a.from_json:
+    if a.from_json:  # also a partial run (the rows are saved after every size)
         res = json.loads(RESULTS.read_text())
+        res.setdefault("slopes", slopes(res["rows"]))
+        loads = [x for r in res["rows"] for x in r["load"]]
+        res.setdefault("info", {"args": "(partial run) " + " ".join(sys.argv[1:]), "repeats": a.repeats,
+                                "load": [loads[0], loads[-1]], "machine": "see the rows"})
     else:
         import platform
 

@@ -611,6 +611,7 @@ def _fixed_slots(k: int) -> int:
     k = 32 mean 177 / 202, 99th percentile 313 / 300."""
     return int(16 * math.ceil((9 * k + 32) / 16))
 _B2 = 32  # queries per batch in the fallback passes
+_COND_K1 = True  # traced k_used: the first pass selects by a min when k_used == 1 (a probe knob)
 _ONE_GROUP = False  # True: every pass in one group, narrow batches (compile -25 %, run +10-25 %; a probe knob)
 _LOOP = True  # the fallback chain as one looped body (False: each pass its own copy; a probe knob)
 
@@ -657,6 +658,24 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
         d = cert if approx is None else cert | (approx & jnp.isfinite(kth(d2)))
         return d if live is None else d | ~live
 
+    def select(d2, pos):
+        """The first pass's selection: ``k`` wide; with a traced ``k_used`` of 1 (ICP's
+        correspondences) a min instead of ``lax.top_k`` (a ``lax.cond``: one branch runs)."""
+        if k_used is None or k == 1 or not _COND_K1:
+            return _select_flag(d2, pos, k)
+
+        def one(_):
+            v, i, _ = _select_flag(d2, pos, 1)
+            b = d2.shape[0]
+            return (jnp.concatenate([v, jnp.full((b, k - 1), jnp.inf, v.dtype)], 1),
+                    jnp.concatenate([i, jnp.zeros((b, k - 1), i.dtype)], 1), jnp.ones(b, bool))
+
+        def wide(_):
+            v, i, ok = _select_flag(d2, pos, k)
+            return v, i, jnp.ones(d2.shape[0], bool) if ok is None else ok
+
+        return lax.cond(k_used == 1, one, wide, None)
+
     if _FIXED_FIRST:  # one fixed gather of C candidates per query (no loop); more than C: not certified
         xyz = (g.spts[:, 0], g.spts[:, 1], g.spts[:, 2])  # coordinates apart: three flat gathers
 
@@ -677,7 +696,7 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
                 d2 = jnp.where(ok, (dx * dx + dy * dy) + dz * dz, jnp.inf)
             else:
                 d2 = jnp.where(ok, _sqdist(q[:, None, :], g.spts[pos]), jnp.inf)
-            d2, pos, sel_ok = _select_flag(d2, pos, k)
+            d2, pos, sel_ok = select(d2, pos)
             full = cum[:, -1:] <= C  # else the C candidates are a part of the block: discarded, not answered
             d2 = jnp.where(full, d2, jnp.inf)
             b = jnp.maximum(bound, 0.0)
