@@ -20,9 +20,10 @@ machine is shared: CPU seconds are steadier than wall), and the wall time, one p
 
 ``--mem N`` (default 200000): peak memory at N, one fresh subprocess per (workload, method):
 ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` (the whole process: interpreter, libraries, inputs,
-compilation, one call) after the inputs are made, after compiling, and after one call; and the
-growth of the peak resident set during one call after compiling (``/proc/self/clear_refs`` reset,
-``_harness.rss_peak_bytes``: a lower bound where an allocator reuses memory it holds), plus the
+compilation) after the imports and after making the inputs and compiling; then, after a warm-up
+call, the high-water mark is reset (``/proc/self/clear_refs``; this resets ``ru_maxrss`` too) and
+one call made: ``ru_maxrss`` after it (resident set plus that call's peak) and its growth
+(``_harness.rss_peak_bytes``: a lower bound where an allocator reuses memory it holds), plus the
 XLA buffers of the compiled fsjax program (temporaries + outputs).
 
     python benchmarks/bench_points_scaling.py [--sizes 1000,2000,...] [--repeats 3] [--mem 200000]
@@ -303,12 +304,15 @@ def markdown(res) -> str:
     if mem:
         n_mem = mem[0]["n"]
         lines += ["", f"Peak memory at {n_mem:,} points, one fresh subprocess per row "
-                  "(`ru_maxrss`: the whole process -- interpreter, JAX/Open3D/SciPy imports, inputs, "
-                  "compilation and calls; *one call* = growth of the peak resident set during one call "
-                  "after compiling and a warm-up call, a lower bound; *XLA buffers* = temporaries + "
-                  "outputs of the compiled fsjax program):", "",
-                  "| workload | method | ru_maxrss after imports | after inputs (+ compile) | at end | one call | "
-                  "XLA buffers |", "|---|---|---|---|---|---|---|"]
+                  "(`ru_maxrss`, the whole process -- interpreter, JAX/Open3D/SciPy/fsjax imports, inputs, "
+                  "compilation and calls: after the imports, and after making the inputs and compiling; then "
+                  "one warm-up call; then the high-water mark is reset (`/proc/self/clear_refs`, which also "
+                  "resets `ru_maxrss`) and one more call made: *peak of one call* = `ru_maxrss` after it "
+                  "(what is resident plus that call's peak), *growth* = its growth over the resident set "
+                  "before it (a lower bound where an allocator reuses memory it holds); *XLA buffers* = "
+                  "temporaries + outputs of the compiled fsjax program):", "",
+                  "| workload | method | ru_maxrss after imports | after inputs + compile | peak of one call | "
+                  "growth of one call | XLA buffers |", "|---|---|---|---|---|---|---|"]
         for m in mem:
             if "error" in m:
                 lines.append(f"| {m['workload']} | {m['method']} | failed: {m['error'][:80]} | | | | |")
