@@ -344,6 +344,7 @@ def main() -> None:
     ap.add_argument("--mem", type=int, default=200000, help="size of the memory subprocesses (0: none)")
     ap.add_argument("--write-docs", action="store_true")
     ap.add_argument("--from-json", action="store_true", help="redo the chart and docs from the saved results")
+    ap.add_argument("--mem-lines", default=None, help="with --from-json: a file of --mem-case output lines")
     ap.add_argument("--mem-case", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.mem_case:
@@ -352,6 +353,8 @@ def main() -> None:
         return
     if a.from_json:  # also a partial run (the rows are saved after every size)
         res = json.loads(RESULTS.read_text())
+        if a.mem_lines:  # memory rows measured apart (``--mem-case`` runs, one JSON line each)
+            res["mem"] = [json.loads(x) for x in Path(a.mem_lines).read_text().splitlines() if x.startswith("{")]
         res.setdefault("slopes", slopes(res["rows"]))
         loads = [x for r in res["rows"] for x in r["load"]]
         res.setdefault("info", {"args": "(partial run) " + " ".join(sys.argv[1:]), "repeats": a.repeats,
