@@ -2,7 +2,8 @@
 
 Each workload is ``jax.jit(f).trace(...).lower().compile()`` with process CPU seconds around the
 compile (the machine is shared: CPU seconds, not wall), then the median of 3 runs of the compiled
-program (wall, and process CPU: the steadier figure on a shared machine). The load average is printed per line.
+program (wall, and process CPU: the steadier figure on a shared machine). The load average is printed per line,
+and the number of kernels of the compiled program (see :func:`kernels`: load-free, follows the compile time).
 
     python benchmarks/compile_knn.py [--only knn10_20k,icp_p2plane_20k,...] [--x64]
 
@@ -68,6 +69,26 @@ def workloads(dt):
     return w
 
 
+def kernels(compiled) -> int:
+    """Kernels of a compiled program: instructions outside fused computations, less the free ones
+    (parameters, constants, tuples, bitcasts, control flow). XLA:CPU compiles each one (a fusion, a
+    sort, a scatter, ...) into its own function, so the count follows the compile time and, unlike
+    CPU seconds on a shared machine, does not depend on the load."""
+    import re
+
+    free = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast", "while", "conditional", "call"}
+    n = 0
+    for comp in re.split(r"\n(?=(?:ENTRY )?%?[\w.\-]+ \(.*\) -> .* \{)", compiled.as_text()):
+        head = comp.split("\n", 1)[0]
+        name = head.split(" ")[1] if head.startswith("ENTRY") else head.split(" ")[0]
+        if "fused" in name or "wrapped" in name:
+            continue
+        for line in comp.split("\n")[1:]:
+            m = re.search(r"= \S+ ([\w\-]+)\(", line)
+            n += bool(m and m.group(1) not in free)
+    return n
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--only", default=None)
@@ -95,6 +116,7 @@ def main():
             ts.append(time.perf_counter() - t0)
             cs.append(time.process_time() - u0)
         print(f"{name:24s} trace+lower {c1 - c0:6.2f}s cpu  compile {c2 - c1:6.2f}s cpu  "
+              f"kernels {kernels(comp):5d}  "
               f"run {np.median(ts) * 1e3:9.1f} ms wall {np.median(cs) * 1e3:9.1f} ms cpu  "
               f"load {l0:.1f}->{os.getloadavg()[0]:.1f}", flush=True)
 

@@ -70,7 +70,7 @@ def main():
 def stages(src, tgt, tv):
     """(name, function, args) of each stage of one point-to-plane / point-to-point iteration."""
     from fsjax.fit.icp import _estimate_normals as estimate_normals
-    from fsjax.ops import knn
+    from fsjax.ops import knn, query_knn
 
     n = src.shape[0]
     w = jnp.ones(n, src.dtype)
@@ -81,15 +81,15 @@ def stages(src, tgt, tv):
         out.append(("index build: 3-level sorted-cell grid (once per call)", build, (tgt,)))
 
         def nn(s, t):
-            return icp_mod.query_knn(index, s, 1)
+            return query_knn(index, s, 1)
 
         def normals(t):
             return estimate_normals(t, tv, k=10, index=index)
         out += [("nn k=1 on the index, at 10 deg (first iteration)", nn, (src, tgt)),
                 ("nn k=1 on the index, aligned (last iterations)", nn, (tgt, tgt))]
-        if "approx" in icp_mod.query_knn.__code__.co_varnames:  # the approximate mode of the early iterations
+        if "approx" in query_knn.__code__.co_varnames:  # the approximate mode of the early iterations
             out.append(("nn k=1 on the index, approximate mode, at 10 deg (early iterations)",
-                        lambda s: icp_mod.query_knn(index, s, 1, approx=True), (src,)))
+                        lambda s: query_knn(index, s, 1, approx=True), (src,)))
         from scipy.spatial import cKDTree  # for scale: a tree built once, queried single-threaded
         tree = cKDTree(np.asarray(tgt))
         out += [("for scale: cKDTree query k=1, at 10 deg", lambda s: tree.query(np.asarray(s), 1), (src,)),

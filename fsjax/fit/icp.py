@@ -65,7 +65,12 @@ until the increment is small; then exact nearest neighbours until the increment 
 The returned pose, ``rms_len`` and ``inlier_fraction`` come from exact correspondences; the
 iteration count includes both phases. Small problems (``N M <= 2**22``) use the
 same module's blocked brute force instead (same answers, cheaper to compile). No (N, M) array is
-formed anywhere. The normals / covariances and the registration modules search with the one
+formed anywhere. One search program serves every query of the call: the loop's first turn
+searches the target's own ``normal_k`` / ``cov_k`` / 2 nearest points (normals, covariances,
+spacing), the other turns the k = 1 correspondences; the number of neighbours and of query rows
+are traced (a selection as wide as the first turn's k, a query array ``max(N, M)`` rows long), so
+the search is compiled once (it was twice; ICP point-to-plane at 20,000 points compiled in 15.3 s
+CPU before, ``docs/benchmarks_icp.md``). GICP's source covariances still use their own search. The normals / covariances and the registration modules search with the one
 public k-NN, :func:`fsjax.ops.knn` (any dimension, grid or brute force, a reusable index).
 """
 
@@ -89,8 +94,8 @@ from ..ops.points._search import (
     _brute_batch,
     _brute_queries,
     _brute_refs,
+    _query_grid_knn,
     build_index,
-    query_knn,
 )
 from ..types import Points
 from ..types.results import FitResult, WrappedFit, deprecated_name, renamed
@@ -287,14 +292,13 @@ def _gn_steps(moment, x, q, aux, w, inner_steps: int = 1):
     ``moment(x, q, aux, w)`` gives the 7 x 7 moment at the current points; the condition flag is
     that of the first step (at the pose the pairs were found for).
     """
-    dr, dt = jnp.eye(3, dtype=x.dtype), jnp.zeros(3, x.dtype)
-    ok = jnp.bool_(True)
-    for i in range(inner_steps):
+    def one(i, st):  # a loop, not unrolled: the solve is compiled once
+        dr, dt, ok = st
         xi, oki = _solve6(moment(x @ dr.T + dt, q, aux, w))
-        ok = oki if i == 0 else ok
         r1, t1 = se3_exp(xi)
-        dr, dt = r1 @ dr, r1 @ dt + t1
-    return dr, dt, ok
+        return r1 @ dr, r1 @ dt + t1, jnp.where(i == 0, oki, ok)
+
+    return jax.lax.fori_loop(0, inner_steps, one, (jnp.eye(3, dtype=x.dtype), jnp.zeros(3, x.dtype), jnp.bool_(True)))
 
 
 def _p2plane_step(x, q, n, w, inner_steps: int = 1):
@@ -345,47 +349,66 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     trans_tol = jnp.maximum(trans_tol, floor)
     # the one neighbour structure of the target, built once and reused by every query below: the
     # sorted-cell grid (with a coarse level for the far queries of the first iterations), or for
-    # small problems the blocked brute force (same exact answers, cheaper to compile and to run)
-    brute = src.shape[0] * tgt.shape[0] <= _BRUTE_LIMIT
+    # small problems the blocked brute force (same exact answers, cheaper to compile and to run).
+    # One search program serves every query: the target's own k_self nearest points (spacing,
+    # normals, covariances) in the loop's first turn, the k = 1 correspondences in the others.
+    # The number of neighbours and of query rows are traced (the selection is k_self wide, the
+    # query array max(N, M) rows long), so the search is compiled once.
+    n_src, n_tgt = src.shape[0], tgt.shape[0]
+    # the target's own neighbours: spacing (column 1), normals or covariances
+    k_self = {"point_to_point": 2, "point_to_plane": 2 if has_normals else max(2, normal_k),
+              "gicp": max(2, cov_k)}[method]
+    need_self = method != "point_to_point" or inlier_dist is None
+    kmax = k_self if need_self else 1
+    n_q = max(n_src, n_tgt) if need_self else n_src
+    brute = n_src * n_tgt <= _BRUTE_LIMIT
     if brute:
         refs = _brute_refs(tgt, tv)
-        bsz = _brute_batch(src.shape[0], tgt.shape[0])
+        bsz = _brute_batch(n_q, n_tgt)
 
-        def nearest(x, k, approx=None, gate=None):  # exact always (small problems)
-            d2, idx, _ = _batched(lambda q: _brute_queries(refs, q, k), (x,), bsz)
-            return idx, d2
+        def nearest(x, k_used, n_rows, approx, gate):  # exact always (small problems)
+            d2, idx, _ = _batched(lambda q: _brute_queries(refs, q, kmax), (x,), bsz, n_rows)
+            miss = (jnp.arange(kmax)[None, :] >= k_used) | (jnp.arange(n_q)[:, None] >= n_rows) | (d2 > gate**2)
+            return jnp.where(miss, -1, idx), jnp.where(miss, jnp.inf, d2)
     else:
         index = build_index(tgt, tv, k=10, coarse=True)
 
-        def nearest(x, k, approx=None, gate=None):
-            return query_knn(index, x, k, approx=approx, max_dist=gate)
-    # one k-NN pass over the target itself: spacing (column 1), normals or covariances
-    k_self = {"point_to_point": 2, "point_to_plane": 2 if has_normals else max(2, normal_k),
-              "gicp": max(2, cov_k)}[method]
-    if method != "point_to_point" or inlier_dist is None:
-        idx_t, d2_t = nearest(tgt, k_self)
-    if inlier_dist is None:  # 3 x the median nearest-neighbour spacing of the target
-        inlier_dist = 3.0 * jnp.nanmedian(jnp.sqrt(jnp.where(tv, d2_t[:, 1], jnp.nan)))
-    else:
-        inlier_dist = inlier_dist / scale
-    if method == "point_to_plane":
-        if has_normals:
-            tn = tnormals
-        else:
-            cov, cnt = _cov_from_idx(tgt, idx_t[:, :normal_k])
-            tn = jnp.where((cnt >= 3)[:, None], smallest_eigvec3(cov), 0.0)
-        tn = jnp.where(jnp.isfinite(tn), tn, 0.0)
-    if method == "gicp":
-        ct = _gicp_cov(_cov_from_idx(tgt, idx_t[:, :cov_k])[0])
-        cs = local_covariances(src, sv, k=cov_k)
-    n_src = src.shape[0]
+        def nearest(x, k_used, n_rows, approx, gate):
+            # the fallback passes in one looped body: ~18 % less compile, ~8 % more run time at
+            # 20,000 points (one process, float32; docs/benchmarks_icp.md)
+            return _query_grid_knn(index, x, kmax, approx, gate**2, k_used, n_rows, one_group=True)
 
-    def correspond(r, t, approx):
-        p = src @ r.T + t
+    def pad_rows(x):
+        return x if x.shape[0] == n_q else jnp.concatenate([x, jnp.zeros((n_q - x.shape[0], 3), x.dtype)])
+
+    if method == "point_to_plane":
+        aux0 = jnp.where(jnp.isfinite(tnormals), tnormals, 0.0) if has_normals else jnp.zeros((n_tgt, 3), dtype)
+    elif method == "gicp":
+        aux0 = jnp.zeros((n_tgt, 3, 3), dtype)
+        cs = local_covariances(src, sv, k=cov_k)
+    else:
+        aux0 = jnp.zeros((1,), dtype)
+    inlier0 = jnp.asarray(0.0, dtype) if inlier_dist is None else inlier_dist / scale
+
+    def from_self(idx_t, d2_t, aux, inl):
+        """The target's spacing, normals or covariances from its own neighbours (the first turn)."""
+        idx_t, d2_t = idx_t[:n_tgt], d2_t[:n_tgt]
+        if inlier_dist is None:  # 3 x the median nearest-neighbour spacing of the target
+            inl = 3.0 * jnp.nanmedian(jnp.sqrt(jnp.where(tv, d2_t[:, 1], jnp.nan)))
+        if method == "point_to_plane" and not has_normals:
+            cov, cnt = _cov_from_idx(tgt, idx_t[:, :normal_k])
+            aux = jnp.where((cnt >= 3)[:, None], smallest_eigvec3(cov), 0.0)
+            aux = jnp.where(jnp.isfinite(aux), aux, 0.0)
+        if method == "gicp":
+            aux = _gicp_cov(_cov_from_idx(tgt, idx_t[:, :cov_k])[0])
+        return aux, inl
+
+    gate = jnp.where(jnp.isfinite(max_corr), max_corr, jnp.inf)
+
+    def correspond(idx, d2):
         # pairs beyond the gate are dropped below: the grid need not search past it (far queries
         # of a partial target fell through to brute force: 20x on a model against a one-sided scan)
-        idx, d2 = nearest(p, 1, approx, jnp.where(jnp.isfinite(max_corr), max_corr, jnp.inf))
-        j, d2 = idx[:, 0], d2[:, 0]
+        j, d2 = idx[:n_src, 0], d2[:n_src, 0]
         ok = sv & (j >= 0) & (d2 <= max_corr**2)
 
         def trim(ok):  # keep the ceil(overlap * n_ok) smallest distances
@@ -395,9 +418,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             return ok & (d2 <= thr) & (keep_n > 0)
 
         ok = jax.lax.cond(overlap < 1, trim, lambda ok: ok, ok)
-        return p, jnp.maximum(j, 0), d2, ok
+        return jnp.maximum(j, 0), d2, ok
 
-    def step(r, t, p, j, ok):
+    def step(r, t, p, j, ok, aux):
         w = ok.astype(dtype)
         q = tgt[j]
         n_ok = jnp.sum(ok)
@@ -406,9 +429,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                                                      jnp.where(ok[:, None], q, 0.0), w, False)
             geom_ok = sing[1] > 1e3 * jnp.finfo(dtype).eps * sing[0]
         elif method == "point_to_plane":
-            dr, dt, geom_ok = _p2plane_step(p, q, tn[j], w, inner_steps)
+            dr, dt, geom_ok = _p2plane_step(p, q, aux[j], w, inner_steps)
         else:
-            winv, inv_ok = _sym_inv3(ct[j] + jnp.einsum("ij,njk,lk->nil", r, cs, r))
+            winv, inv_ok = _sym_inv3(aux[j] + jnp.einsum("ij,njk,lk->nil", r, cs, r))
             dr, dt, geom_ok = _gn_steps(_gicp_moment, p, q, winv, w * inv_ok, inner_steps)
         r_new = dr @ r
         t_new = dr @ t + dt
@@ -426,41 +449,56 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     # two phases on the grid: approximate correspondences (a far source point may get the nearest
     # target point of the first cell block holding one, see query_knn) until the increment is
     # small or the mean squared distance stops falling, then exact ones until it is small; the returned pose, rms_len and fitness all
-    # come from exact correspondences (the evaluation turn is exact)
+    # come from exact correspondences (the evaluation turn is exact). A first turn (``first``)
+    # searches the target's own neighbours instead and only sets ``aux`` and the inlier distance.
     def body(st):
-        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax = st
-        stop = done | (bad != OK) | (it >= max_iterations)
-        p, j, d2, ok = correspond(r, t, ~exact & ~stop)
-        r2, t2, small, bad2, n2, dang = step(r, t, p, j, ok)
-        # the approximate phase also ends when it stops paying: the mean squared distance no
-        # longer falls (approximate pairs can cycle by ~1e-3 deg and never make the step small)
-        ms = jnp.sum(jnp.where(ok, d2, 0.0)) / jnp.maximum(jnp.sum(ok), 1)
-        ms_prev = jnp.sum(jnp.where(ok_prev, d2_prev, 0.0)) / jnp.maximum(jnp.sum(ok_prev), 1)
-        stalled = (it > 0) & (ms >= ms_prev * (1 - 1e-4))
-        # exact pairs can cycle too (float32: period 2-4, steps ~2e-5 rad, two pair sets that a
-        # tiny motion swaps): converged when, in the exact phase, the mean squared distance has
-        # not set a new low (by 1e-6 relative) for CYCLE_ITERS turns and no step in them exceeded
-        # _CYCLE_TOL; a drift (larger steps) still runs out of iterations
-        better = ms < best * (1 - 1e-6)
-        best = jnp.where(exact, jnp.minimum(best, ms), jnp.inf)
-        since = jnp.where(exact & ~better, since + 1, 0)
-        wmax = jnp.where(exact & ~better, jnp.maximum(wmax, dang), 0.0)
-        cycled = (since >= _CYCLE_ITERS) & (wmax <= _CYCLE_TOL)
-        upd = ~stop & (bad2 == OK)
-        if verbose:  # static: no cost unless asked; one host line per iteration
-            n_pairs = jnp.sum(ok)
-            rms = jnp.sqrt(jnp.sum(jnp.where(ok, d2, 0.0)) / jnp.maximum(n_pairs, 1)) * scale
-            jax.lax.cond(stop, lambda: None, lambda: jax.debug.callback(
-                _progress_line, it, n_pairs, rms, rotation_angle_deg(r2 @ r.T), ~(~exact & ~stop)))
-        return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
-                jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
-                jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2, ok, stop, exact | small | stalled,
-                best, since, wmax)
+        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl = st
+        stop = ~first & (done | (bad != OK) | (it >= max_iterations))
+        p = src @ r.T + t
+        idx, d2 = nearest(jnp.where(first, pad_rows(tgt), pad_rows(p)), jnp.where(first, k_self, 1),
+                          jnp.where(first, n_tgt, n_src), ~first & ~exact & ~stop, jnp.where(first, jnp.inf, gate))
+
+        def first_turn(_):
+            aux2, inl2 = from_self(idx, d2, aux, inl)
+            return st[:13] + (jnp.bool_(False), aux2, inl2)
+
+        def turn(_):
+            j, d2c, ok = correspond(idx, d2)
+            r2, t2, small, bad2, n2, dang = step(r, t, p, j, ok, aux)
+            # the approximate phase also ends when it stops paying: the mean squared distance no
+            # longer falls (approximate pairs can cycle by ~1e-3 deg and never make the step small)
+            ms = jnp.sum(jnp.where(ok, d2c, 0.0)) / jnp.maximum(jnp.sum(ok), 1)
+            ms_prev = jnp.sum(jnp.where(ok_prev, d2_prev, 0.0)) / jnp.maximum(jnp.sum(ok_prev), 1)
+            stalled = (it > 0) & (ms >= ms_prev * (1 - 1e-4))
+            # exact pairs can cycle too (float32: period 2-4, steps ~2e-5 rad, two pair sets that a
+            # tiny motion swaps): converged when, in the exact phase, the mean squared distance has
+            # not set a new low (by 1e-6 relative) for CYCLE_ITERS turns and no step in them exceeded
+            # _CYCLE_TOL; a drift (larger steps) still runs out of iterations
+            better = ms < best * (1 - 1e-6)
+            best2 = jnp.where(exact, jnp.minimum(best, ms), jnp.inf)
+            since2 = jnp.where(exact & ~better, since + 1, 0)
+            wmax2 = jnp.where(exact & ~better, jnp.maximum(wmax, dang), 0.0)
+            cycled = (since2 >= _CYCLE_ITERS) & (wmax2 <= _CYCLE_TOL)
+            upd = ~stop & (bad2 == OK)
+            if verbose:  # static: no cost unless asked; one host line per iteration
+                n_pairs = jnp.sum(ok)
+                rms = jnp.sqrt(jnp.sum(jnp.where(ok, d2c, 0.0)) / jnp.maximum(n_pairs, 1)) * scale
+                jax.lax.cond(stop, lambda: None, lambda: jax.debug.callback(
+                    _progress_line, it, n_pairs, rms, rotation_angle_deg(r2 @ r.T), ~(~exact & ~stop)))
+            return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
+                    jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
+                    jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled,
+                    best2, since2, wmax2, first, aux, inl)
+
+        return jax.lax.cond(first, first_turn, turn, None)
 
     z = jnp.zeros(n_src, dtype)
     init = (jnp.int32(0), r0, t0, ~input_ok, input_reason.astype(jnp.int32), jnp.int32(0), z, sv, jnp.bool_(False),
-            jnp.bool_(brute), jnp.asarray(jnp.inf, dtype), jnp.int32(0), jnp.asarray(0.0, dtype))
-    it, r, t, done, bad, n_ok, d2a, ok = jax.lax.while_loop(cond, body, init)[:8]
+            jnp.bool_(brute), jnp.asarray(jnp.inf, dtype), jnp.int32(0), jnp.asarray(0.0, dtype),
+            jnp.bool_(need_self), aux0, inlier0)
+    out = jax.lax.while_loop(cond, body, init)
+    it, r, t, done, bad, n_ok, d2a, ok = out[:8]
+    inlier_dist = out[15]
     n_fin = jnp.sum(ok)
     rmse = jnp.sqrt(jnp.sum(jnp.where(ok, d2a, 0.0)) / jnp.maximum(n_fin, 1)) * scale
     inl = jnp.sum(sv & (d2a <= inlier_dist**2)) / jnp.maximum(ns, 1)

@@ -476,3 +476,34 @@ def test_knn_cell_size_for_k1_is_the_nearest_other_point():
     h = float(_knn_cell_size(jnp.asarray(ref), jnp.ones(len(ref), bool), 1))
     np.testing.assert_allclose(h, 1.5 * np.median(d[:, 1]), rtol=1e-5)
     assert h > 0
+
+
+def test_one_program_for_several_k_and_query_counts():
+    """ICP's one search program: the number of neighbours (``k_used`` <= the static width) and of
+    query rows (``n_q``) are traced, so the target's own k-NN and the k = 1 correspondences share
+    one compile; each call is exact vs cKDTree for its own k, the columns past ``k_used`` and the
+    rows past ``n_q`` are missing. The fallback passes in one looped body (ICP's ``one_group``),
+    far queries (30 deg, points 10 cm off) included, in the exact mode."""
+    from fsjax.data import surface_points
+    from fsjax.fit.rigid import rotation_from_axis_angle
+    from fsjax.ops import build_index
+    from fsjax.ops.points._search import _query_grid_knn
+
+    ref = surface_points("bunny", 3000, 0)
+    rot = np.asarray(rotation_from_axis_angle(jnp.array([0.3, 1.0, -0.4]), 30.0))
+    q = surface_points("bunny", 3000, 1) @ rot.T
+    q[:40] += 0.1
+    ix = jax.jit(lambda r: build_index(r, k=10, coarse=True))(jnp.asarray(ref))
+    calls = []
+
+    def f(ix, q, k_used, n_q):
+        calls.append(1)  # traced once per compile
+        return _query_grid_knn(ix, q, 10, jnp.bool_(False), jnp.asarray(np.inf), k_used, n_q, one_group=True)
+
+    fj = jax.jit(f)
+    for k_used, n_q, qq in ((10, 3000, ref), (1, 2200, q), (4, 3000, q)):
+        idx, d2 = (np.asarray(a) for a in fj(ix, jnp.asarray(qq), k_used, n_q))
+        assert _check_knn(ref, qq[:n_q], k_used, idx[:n_q, :k_used], d2[:n_q, :k_used]) == n_q
+        assert np.all(idx[:, k_used:] == -1) and np.all(np.isinf(d2[:, k_used:]))
+        assert np.all(idx[n_q:] == -1) and np.all(np.isinf(d2[n_q:]))
+    assert len(calls) == 1  # one program for the three

@@ -286,14 +286,29 @@ def _select_finite(d, ids, k):
     return vo, io
 
 
-def _batched(fn, arrays, B):
-    """Apply ``fn`` (batch of B rows -> tuple of (B, ...) arrays) over the rows of ``arrays``."""
+def _batched(fn, arrays, B, n=None):
+    """Apply ``fn`` (batch of B rows -> tuple of (B, ...) arrays) over the rows of ``arrays``.
+
+    ``n`` (traced int, optional): only the batches holding the first ``n`` rows are computed (a
+    ``fori_loop`` whose trip count follows ``n``); the other rows' outputs are left as computed
+    zero (the caller masks them).
+    """
     m = arrays[0].shape[0]
     nb = -(-m // B)
     pad = nb * B - m
     xs = tuple(jnp.concatenate([a, jnp.repeat(a[:1], pad, axis=0)]).reshape(nb, B, *a.shape[1:])
                for a in arrays)
-    outs = lax.map(lambda t: fn(*t), xs)
+    if n is None:
+        outs = lax.map(lambda t: fn(*t), xs)
+    else:
+        shapes = jax.eval_shape(fn, *(x[0] for x in xs))
+        outs = tuple(jnp.zeros((nb,) + o.shape, o.dtype) for o in shapes)
+
+        def body(i, outs):
+            new = fn(*(x[i] for x in xs))
+            return tuple(lax.dynamic_update_index_in_dim(o, nw, i, 0) for o, nw in zip(outs, new))
+
+        outs = lax.fori_loop(0, jnp.clip((n + B - 1) // B, 0, nb), body, outs)
     return tuple(o.reshape(nb * B, *o.shape[2:])[:m] for o in outs)
 
 
@@ -507,7 +522,7 @@ def _grid(ref, valid, h) -> GridIndex:
     return GridIndex(ref, valid, lo, h, dims, key[order], ref[order], order, cstart=cstart)
 
 
-def _scan_cells(spts, q, start, length, kk, S, r2=None, exact=False):
+def _scan_cells(spts, q, start, length, kk, S, r2=None, exact=False, select=None):
     """Visit every candidate of the runs ``(start, length)`` of a batch of queries.
 
     Candidates are taken ``S`` per query and step; a ``while_loop`` steps until the
@@ -515,7 +530,8 @@ def _scan_cells(spts, q, start, length, kk, S, r2=None, exact=False):
     (within ``r2`` if given): ``(dist2 (B, kk), sorted positions (B, kk), count (B,), ok (B,))``;
     ``ok`` False: a float64 selection was ambiguous (see :func:`_select_f64`), not certified.
     ``exact`` (radius search only): select by arg-min passes, never ambiguous (slow: a pass per
-    neighbour found), for the rows a first scan flagged.
+    neighbour found), for the rows a first scan flagged. ``select(d, ids) -> (v, ids, ok)``
+    replaces :func:`_select_flag` (a traced number of neighbours, :func:`_query_grid_knn`).
     """
     b, nr = start.shape
     cum = jnp.cumsum(length, axis=1)
@@ -544,7 +560,7 @@ def _scan_cells(spts, q, start, length, kk, S, r2=None, exact=False):
         if exact:
             bd, bi = _select_finite(dd, pp, kk)
         else:
-            bd, bi, okb = _select_flag(dd, pp, kk)
+            bd, bi, okb = _select_flag(dd, pp, kk) if select is None else select(dd, pp)
             fine = fine if okb is None else fine & okb
         return j + 1, bd, bi, cnt + jnp.sum(keep, axis=1, dtype=jnp.int32), fine
 
@@ -596,12 +612,21 @@ def _fixed_slots(k: int) -> int:
     k = 32 mean 177 / 202, 99th percentile 313 / 300."""
     return int(16 * math.ceil((9 * k + 32) / 16))
 _B2 = 32  # queries per batch in the fallback passes
+_COND_K1 = True  # traced k_used: the first pass selects by a min when k_used == 1 (a probe knob)
 _ONE_GROUP = False  # True: every pass in one group, narrow batches (compile -25 %, run +10-25 %; a probe knob)
 _LOOP = True  # the fallback chain as one looped body (False: each pass its own copy; a probe knob)
 
 
-def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
+def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, n_q=None, one_group=None):
     """Exact k-NN on the index ``g``; with ``approx`` (a traced bool) True, the approximate mode.
+
+    ``k_used`` (a traced int in ``[1, k]``, default ``k``): the number of neighbours wanted; the
+    static ``k`` is then only the width of the selection, so one compiled program serves several
+    ``k`` (ICP: the target's own k-NN for its normals, then the k = 1 correspondences). Columns
+    from ``k_used`` on are returned missing. ``n_q`` (a traced int, default all): only the first
+    ``n_q`` query rows are searched (the rest are returned missing), so queries of different
+    lengths can share one padded array. ``one_group`` (static, default ``_ONE_GROUP``): the fallback
+    passes in one looped body (see :func:`_chain_loop`; ICP asks for it: its compile time).
 
     Exact: each pass answers the queries whose k-th distance it certifies; the rest go to the
     next pass (fine 27-cell block, fine 125-cell block, coarse levels, brute force).
@@ -613,6 +638,11 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
     """
     eps = jnp.finfo(qry.dtype).eps
     S = _slots(k)
+    m = qry.shape[0]
+    live = None if n_q is None else jnp.arange(m) < n_q  # rows to search
+
+    def kth(d2):  # the k_used-th distance of each row
+        return d2[:, -1] if k_used is None else lax.dynamic_index_in_dim(d2, k_used - 1, 1, keepdims=False)
 
     def gated(b):  # with a gate: every point within it lies inside a block reaching past it
         return jnp.zeros(b.shape, bool) if gate2 is None else (b * b) * (1 - 64 * eps) >= gate2
@@ -622,11 +652,31 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
         d2, pos, _, ok = _scan_cells(grid.spts, q, start, length, k, S)
         b = jnp.maximum(bound, 0.0)
         # certificate: the k-th distance is strictly inside the searched block
-        cert = ok & ((d2[:, -1] < (b * b) * (1 - 64 * eps)) | gated(b))
+        cert = ok & ((kth(d2) < (b * b) * (1 - 64 * eps)) | gated(b))
         return d2, jnp.where(jnp.isfinite(d2), grid.order[pos], -1), cert
 
     def done(d2, cert):  # answered: certified, or (approximate mode) k points found in the block
-        return cert if approx is None else cert | (approx & jnp.isfinite(d2[:, -1]))
+        d = cert if approx is None else cert | (approx & jnp.isfinite(kth(d2)))
+        return d if live is None else d | ~live
+
+    def select(d2, pos):
+        """The selection of the first pass and the fallback chain: ``k`` wide; with a traced
+        ``k_used`` of 1 (ICP's correspondences) a min instead of ``lax.top_k`` (a ``lax.cond``:
+        one branch runs; measured on ICP at 20,000 points, float32: 507 -> 417 ms CPU)."""
+        if k_used is None or k == 1 or not _COND_K1:
+            return _select_flag(d2, pos, k)
+
+        def one(_):
+            v, i, _ = _select_flag(d2, pos, 1)
+            b = d2.shape[0]
+            return (jnp.concatenate([v, jnp.full((b, k - 1), jnp.inf, v.dtype)], 1),
+                    jnp.concatenate([i, jnp.zeros((b, k - 1), i.dtype)], 1), jnp.ones(b, bool))
+
+        def wide(_):
+            v, i, ok = _select_flag(d2, pos, k)
+            return v, i, jnp.ones(d2.shape[0], bool) if ok is None else ok
+
+        return lax.cond(k_used == 1, one, wide, None)
 
     if _FIXED_FIRST:  # one fixed gather of C candidates per query (no loop); more than C: not certified
         xyz = (g.spts[:, 0], g.spts[:, 1], g.spts[:, 2])  # coordinates apart: three flat gathers
@@ -648,26 +698,32 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
                 d2 = jnp.where(ok, (dx * dx + dy * dy) + dz * dz, jnp.inf)
             else:
                 d2 = jnp.where(ok, _sqdist(q[:, None, :], g.spts[pos]), jnp.inf)
-            d2, pos, sel_ok = _select_flag(d2, pos, k)
+            d2, pos, sel_ok = select(d2, pos)
             full = cum[:, -1:] <= C  # else the C candidates are a part of the block: discarded, not answered
             d2 = jnp.where(full, d2, jnp.inf)
             b = jnp.maximum(bound, 0.0)
-            cert = (d2[:, -1] < (b * b) * (1 - 64 * eps)) | (gated(b) & full[:, 0])
+            cert = (kth(d2) < (b * b) * (1 - 64 * eps)) | (gated(b) & full[:, 0])
             if sel_ok is not None:
                 cert = cert & sel_ok
             return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cert, ~full[:, 0]
 
         C1 = _fixed_slots(k)
-        d2, idx, cert, over = _batched(lambda q: fixed_pass(q, C1), (qry,), min(_B1, qry.shape[0]))
-        # the queries whose block holds more than C1 points: the same pass with 4 C1 slots (few on
-        # an index sized for k; most when a k = 1 query meets an index sized for k = 10, as in ICP:
-        # sending them to the 125-cell pass instead made ICP at 20,000 points 2x slower)
-        d2, idx, cert = _redo(~done(d2, cert) & over, _B1 // 8, lambda sel: fixed_pass(qry[sel], 4 * C1)[:3],
-                              (d2, idx, cert))
+        d2, idx, cert, over = _batched(lambda q: fixed_pass(q, C1), (qry,), min(_B1, qry.shape[0]), n_q)
+        # the queries whose block holds more than C1 points: the same 27 cells scanned in full, the
+        # first pass of the fallback chain below (few on an index sized for k; most when a k = 1 query
+        # meets an index sized for k = 10: ICP now queries with the width of its normals' k instead;
+        # sending them to the 125-cell pass made ICP at 20,000 points 2x slower). A second copy of
+        # the fixed pass with 4 C1 slots did this before: one more compiled program.
+        if not _LOOP:
+            d2, idx, cert = _redo(~done(d2, cert) & over, _B1 // 8, lambda sel: fixed_pass(qry[sel], 4 * C1)[:3],
+                                  (d2, idx, cert))
+            over = None
     else:
         d2, idx, cert = _in_cell_order(g, qry, lambda q: ring_pass(g, q, 1, S), min(_B1, qry.shape[0]))
+        over = None
     if _LOOP:
-        d2, idx, cert = _chain_loop(g, qry, k, (d2, idx, cert), approx, gated, S)
+        d2, idx, cert = _chain_loop(g, qry, k, (d2, idx, cert), approx, gated, S, kth, live, over,
+                                    _ONE_GROUP if one_group is None else one_group, select)
     else:
         # not answered: the 5 x 5 x 5 block of the same grid
         # (smaller batches in float64, whose loop passes measured ~10x slower than float32's in XLA:CPU)
@@ -695,10 +751,18 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None):
     if gate2 is not None:  # beyond the gate: not searched exactly, reported missing
         far = d2 > gate2
         d2, idx = jnp.where(far, jnp.inf, d2), jnp.where(far, -1, idx)
+    if k_used is not None or live is not None:  # columns past k_used, rows past n_q: missing
+        miss = jnp.zeros(d2.shape, bool)
+        if k_used is not None:
+            miss = miss | (jnp.arange(k)[None, :] >= k_used)
+        if live is not None:
+            miss = miss | ~live[:, None]
+        d2, idx = jnp.where(miss, jnp.inf, d2), jnp.where(miss, -1, idx)
     return idx, d2
 
 
-def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S):
+def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S, kth=None, live=None, over=None, one_group=False,
+                select=None):
     """The fallback chain of :func:`_query_grid_knn` after its first pass, as two looped bodies.
 
     The passes, in order: the fine 5 x 5 x 5 block; (approximate mode) the representatives'
@@ -712,8 +776,10 @@ def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S):
     because the batch is static: the fine-level passes, which many queries reach (ICP's first
     iterations: most), in wide batches of few slots; the coarse and whole-array passes, which
     few queries reach but with many candidates each, in batches of ``_B2`` queries and ``8 S``
-    slots. (One group at ``_B2`` (``_ONE_GROUP``) compiles ~25 % faster again but made k = 1
-    approximate queries at 20,000 points 10-25 % slower, float32 and float64.)
+    slots. (One group at ``_B2`` (``one_group``) compiles ~25 % faster again but made k = 1
+    approximate queries at 20,000 points 10-25 % slower, float32 and float64; ICP, whose compile
+    is the larger cost, uses it.) When ``over`` is given, the first fine pass scans the 27 cells
+    of the queries it flags (their block overflowed the loop-free first pass's slots).
 
     Exactness as unrolled: a pass certifies a query when its k-th distance lies strictly inside
     the pass's block (64 ulp margin); the whole-array scan certifies every query it answers,
@@ -723,14 +789,16 @@ def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S):
     eps = jnp.finfo(qry.dtype).eps
     use_approx = jnp.bool_(False) if approx is None else approx
     n_valid = g.cstart[-1]
+    kth = (lambda d2: d2[:, -1]) if kth is None else kth
 
     def done(d2, cert):
-        return cert | (use_approx & jnp.isfinite(d2[:, -1]))
+        d = cert | (use_approx & jnp.isfinite(kth(d2)))
+        return d if live is None else d | ~live
 
-    def run(levels, passes, B, Sl, outs):  # passes: (level, ring, representatives?, whole array?)
+    def run(levels, passes, B, Sl, outs):  # passes: (level, ring, representatives?, whole array?, over only?)
         lo, h, dims, spts, order, cstart = (jnp.stack([getattr(lv, f) for lv in levels])
                                              for f in ("lo", "h", "dims", "spts", "order", "cstart"))
-        lev, ring, rep, whole = (jnp.asarray([p[i] for p in passes]) for i in range(4))
+        lev, ring, rep, whole, only_over = (jnp.asarray([p[i] for p in passes]) for i in range(5))
         rmax = max(p[1] for p in passes)
 
         def body(i, outs):
@@ -744,38 +812,41 @@ def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S):
                 col0 = jnp.arange(start.shape[1]) == 0
                 start = jnp.where(wh, jnp.where(col0, 0, start), start)
                 length = jnp.where(wh, jnp.where(col0, n_valid, 0), length)
-                d2, pos, _, ok = _scan_cells(gl.spts, q, start, length, k, Sl)
+                d2, pos, _, ok = _scan_cells(gl.spts, q, start, length, k, Sl, select=select)
                 b = jnp.maximum(bound, 0.0)
-                cert = ok & ((d2[:, -1] < (b * b) * (1 - 64 * eps)) | gated(b))
+                cert = ok & ((kth(d2) < (b * b) * (1 - 64 * eps)) | gated(b))
                 cert = jnp.where(wh, ok, cert & ~rep[i])
                 d2 = jnp.where(wh & ~ok[:, None], jnp.inf, d2)  # ambiguous float64 rows: re-done exactly below
                 return d2, jnp.where(jnp.isfinite(d2), gl.order[pos], -1), cert
 
             todo = ~done(outs[0], outs[2]) & (use_approx | ~rep[i])
+            if over is not None:
+                todo = todo & (over | ~only_over[i])
             return _redo(todo, B, one, outs)
 
         return lax.fori_loop(0, len(passes), body, tuple(outs))
 
     # the fine level: wide batches (smaller in float64, whose loop passes measured ~10x slower
     # than float32's in XLA:CPU)
-    fine, fine_passes = [g], [(0, 2, False, False)]
+    # (the first pass: the 27 cells of the queries whose block overflowed the first pass's slots)
+    fine, fine_passes = [g], ([] if over is None else [(0, 1, False, False, True)]) + [(0, 2, False, False, False)]
     if approx is not None and g.reps is not None:
         fine.append(g.reps)
-        fine_passes.append((1, 1, True, False))
+        fine_passes.append((1, 1, True, False, False))
     b2 = _B1 // 2 if qry.dtype == jnp.float32 else _B1 // 8
-    if not _ONE_GROUP:
+    if not one_group:
         outs = run(fine, fine_passes, min(b2, qry.shape[0]), 2 * S, outs)
         fine, fine_passes = [g], []
     # the coarse levels and the whole array: narrow batches, many slots
     coarse, coarse_passes = fine, fine_passes
     if g.coarse is not None:
         coarse.append(g.coarse)
-        coarse_passes += [(len(coarse) - 1, r, False, False) for r, name in ((1, "c4r1"), (2, "c4r2"))
+        coarse_passes += [(len(coarse) - 1, r, False, False, False) for r, name in ((1, "c4r1"), (2, "c4r2"))
                           if name in _CHAIN]
         if g.coarse.coarse is not None and "c16r1" in _CHAIN:
             coarse.append(g.coarse.coarse)
-            coarse_passes.append((len(coarse) - 1, 1, False, False))
-    coarse_passes.append((0, 1, False, True))
+            coarse_passes.append((len(coarse) - 1, 1, False, False, False))
+    coarse_passes.append((0, 1, False, True, False))
     d2, idx, cert = run(coarse, coarse_passes, _B2, 8 * S, outs)
     if qry.dtype != jnp.float32 and k > 1:  # ambiguous float64 rows of the whole-array scan
         refs = _brute_refs(g.ref, g.valid)
@@ -847,15 +918,39 @@ def build_index(ref_xyz: Any, ref_valid: Any = None, *, k: int = 8, cell: Any = 
         h = _knn_cell_size(ref, valid, k) if ref.shape[0] > 0 else jnp.asarray(1.0, ref.dtype)
     else:
         h = jnp.asarray(cell, ref.dtype) * (1 + 16 * jnp.finfo(ref.dtype).eps)
-    g = _grid(ref, valid, h)
     if not coarse:
-        return g
-    g2 = _grid(ref, valid, 4 * g.h)
-    # representatives: the first point (in sorted order) of each occupied cell of the 4x grid
-    first = (g2.skey != _SENTINEL) & (g2.skey != jnp.concatenate([jnp.full(1, -1, jnp.int32), g2.skey[:-1]]))
-    reps = _grid(g2.spts, first, g2.h)
-    reps = reps._replace(order=g2.order[reps.order])
-    return g._replace(coarse=g2._replace(coarse=_grid(ref, valid, 4 * g2.h)), reps=reps)
+        return _grid(ref, valid, h)
+    return _grid_levels(ref, valid, h)
+
+
+def _grid_levels(ref, valid, h):
+    """The fine grid, its 4x and 16x levels and the representatives' grid, built by one looped body.
+
+    Level 0: cells of side about ``h``; 1: 4x level 0's side; 2: 4x level 1's; 3: the first point (in
+    sorted order) of each occupied cell of level 1, on level 1's cells. The four grids have equal
+    shapes, so one ``lax.scan`` over the level builds them (compiled once, not four times).
+    """
+    n = ref.shape[0]
+
+    def body(carry, i):
+        h_prev, pts1, first1, order1, h1 = carry
+        rep = i == 3
+        pts = jnp.where(rep, pts1, ref)
+        msk = jnp.where(rep, first1, valid)
+        hi = jnp.where(i == 0, h, jnp.where(rep, h1, 4 * h_prev))
+        g = _grid(pts, msk, hi)
+        # representatives of the 4x level: the first point of each occupied cell
+        first = (g.skey != _SENTINEL) & (g.skey != jnp.concatenate([jnp.full(1, -1, jnp.int32), g.skey[:-1]]))
+        is1 = i == 1
+        carry = (g.h, jnp.where(is1, g.spts, pts1), jnp.where(is1, first, first1),
+                 jnp.where(is1, g.order, order1), jnp.where(is1, g.h, h1))
+        return carry, (g.lo, g.h, g.dims, g.skey, g.spts, g.order, g.cstart)
+
+    init = (jnp.asarray(h, ref.dtype), ref, valid, jnp.zeros(n, jnp.int32), jnp.asarray(h, ref.dtype))
+    (_, pts1, first1, order1, _), lv = lax.scan(body, init, jnp.arange(4))
+    grids = [GridIndex(ref, valid, *(a[i] for a in lv[:6]), cstart=lv[6][i]) for i in range(4)]
+    reps = grids[3]._replace(ref=pts1, valid=first1, order=order1[grids[3].order])
+    return grids[0]._replace(coarse=grids[1]._replace(coarse=grids[2]), reps=reps)
 
 
 def query_knn(index: GridIndex, query_xyz: Any, k: int, *, approx: Any = None, max_dist: Any = None):
