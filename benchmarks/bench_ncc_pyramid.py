@@ -111,9 +111,9 @@ def main() -> None:
                  f"{'yes' if cl else 'NO'} | {1e3 * t:.1f} ms | {c:.2f} s |")
     L += ["", "Reading: the pyramid lands on `ncc3d`'s placement in every run here (the same integer peak and Newton "
           "step, so the same error); at 128^3 it takes 15-25 % of `ncc3d`'s time per call, at 64^3 70-90 % (the FFT of 64^3 is cheap); its "
-          "compile is 2-4x `ncc3d`'s (an FFT program per level). \"closed NO\" at 128^3 with the 32^3 template is "
-          "`ncc3d`'s own: seed 1's scene without the bunny scores 0.728 at a clutter shell, above the default "
-          "`min_score` 0.7 (set on the 48^3 grid), and the pyramid follows it. With `levels=3` the 32^3 template is 4 "
+          "compile is 2-4x `ncc3d`'s (an FFT program per level). Every empty scene is closed: seed 1's 128^3 scene "
+          "without the bunny scores 0.728 at a clutter shell, above the default `min_score` 0.7, and was accepted "
+          "until the mirror-image test (`max_chance`, docs/fail_closed.md) refused it. With `levels=3` the 32^3 template is 4 "
           "voxels at the top: `top_k=1` misses the bunny on all three seeds and `top_k=2` on two (each reported "
           "`valid=False`, not found: error nan), `top_k=4` finds it on all three.", ""]
     L += ["Where the pyramid breaks (tests/ops/test_match3d_pyramid.py): a template too small for the levels "
