@@ -231,11 +231,28 @@ def mirror_chance(x, t, p, s):
     c = jnp.stack([jnp.sum(a * g) for g in grids]) / jnp.maximum(jnp.sum(a), jnp.finfo(dt).tiny)
     flips = jnp.asarray(_FLIPS, bool)
     mirrors = jnp.stack([jnp.flip(t, tuple(ax for ax in range(3) if f[ax])) for f in _FLIPS])
-    rx = jnp.stack([jnp.sum(t0 * jnp.flip(t0, tuple(ax for ax in range(3) if f[ax]))) for f in _FLIPS])
-    rx = rx / jnp.where(tn > 0, tn, 1.0)
     w = _MIRROR_WINDOW
     size = tuple(min(n + 2 * w, m) for n, m in zip(d, x.shape))
     shift = jnp.where(flips, jnp.round(2 * c - (jnp.asarray(d, dt) - 1)).astype(jnp.int32), 0)
+    # sameness at the best overlay within +-w voxels of the centroid-aligned one (the window the
+    # mirror is scored in below): a symmetric object off the centre of its box is its own mirror
+    # image moved, not an alternative (compared unmoved, a blob one voxel off centre correlated
+    # below MIRROR_SAME with its mirror, which then fitted the scene as well as the template and
+    # refused a true find)
+    offs = jnp.asarray([(a, b, e) for a in range(-w, w + 1) for b in range(-w, w + 1) for e in range(-w, w + 1)],
+                       jnp.int32)
+    dd = jnp.asarray(d, jnp.int32)
+
+    def same(f, sh):
+        m = jnp.pad(jnp.flip(t0, tuple(ax for ax in range(3) if f[ax])), [(n, n) for n in d])
+
+        def at(o):
+            ms = jax.lax.dynamic_slice(m, jnp.clip(dd - sh - o, 0, 2 * dd), d)
+            return jnp.sum(t0 * ms) / jnp.sqrt(jnp.maximum(tn * jnp.sum(ms * ms), jnp.finfo(dt).tiny))
+
+        return jnp.max(jax.vmap(at)(offs))
+
+    rx = jnp.stack([same(f, shift[k]) for k, f in enumerate(_FLIPS)])
     starts = jnp.clip(p[None, :] + shift - w, 0, jnp.asarray(x.shape) - jnp.asarray(size))
 
     def best(m, st):
