@@ -230,3 +230,18 @@ def _meminfo_kb(key: str) -> int:
             if line.startswith(key + ":"):
                 return int(line.split()[1])
     raise KeyError(key)
+
+
+def json_subprocess(script: str, args: list[str], timeout: float, on_error: dict) -> dict:
+    """Run ``python script *args`` and parse its last stdout line as JSON (a measurement made in a
+    fresh process, e.g. peak memory); on any failure, ``on_error`` plus the error text."""
+    import json
+    import subprocess
+    import sys
+
+    try:
+        txt = subprocess.run([sys.executable, script, *args], capture_output=True, text=True, timeout=timeout,
+                             check=True).stdout
+        return json.loads(txt.strip().splitlines()[-1])
+    except Exception as e:  # noqa: BLE001
+        return {**on_error, "error": str(e)[:300]}

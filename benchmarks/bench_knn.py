@@ -46,7 +46,6 @@ import argparse
 import json
 import os
 import resource
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -65,6 +64,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 from _harness import (  # noqa: E402
     jax_compile,
+    json_subprocess,
     load_average,
     machine_info,
     rss_peak_bytes,
@@ -233,12 +233,7 @@ def mem_case(name: str, case: str, n: int) -> dict:
 
 
 def mem_subprocess(name: str, case: str, n: int) -> dict:
-    cmd = [sys.executable, __file__, "--mem-case", f"{name},{case},{n}"]
-    try:
-        txt = subprocess.run(cmd, capture_output=True, text=True, timeout=1800, check=True).stdout
-        return json.loads(txt.strip().splitlines()[-1])
-    except Exception as e:  # noqa: BLE001
-        return {"error": str(e)[:200]}
+    return json_subprocess(__file__, ["--mem-case", f"{name},{case},{n}"], 1800, {})
 
 
 # ---------------------------------------------------------------------------

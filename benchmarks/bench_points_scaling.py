@@ -39,7 +39,6 @@ import argparse
 import json
 import os
 import resource
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -53,7 +52,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _harness import rss_peak_bytes, time_round_robin, xla_memory_bytes  # noqa: E402
+from _harness import json_subprocess, rss_peak_bytes, time_round_robin, xla_memory_bytes  # noqa: E402
 
 from fsjax import Points  # noqa: E402
 from fsjax.data import surface_points  # noqa: E402
@@ -208,12 +207,7 @@ def mem_case(wl: str, m: str, n: int) -> dict:
 
 
 def mem_subprocess(wl: str, m: str, n: int) -> dict:
-    cmd = [sys.executable, __file__, "--mem-case", f"{wl},{m},{n}"]
-    try:
-        txt = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, check=True).stdout
-        return json.loads(txt.strip().splitlines()[-1])
-    except Exception as e:  # noqa: BLE001
-        return {"workload": wl, "method": m, "n": n, "error": str(e)[:300]}
+    return json_subprocess(__file__, ["--mem-case", f"{wl},{m},{n}"], 3600, {"workload": wl, "method": m, "n": n})
 
 
 # ---------------------------------------------------------------------------
