@@ -409,7 +409,7 @@ def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
     nrm = jnp.where(v[:, None], _local_normals(xc, v, idx), 0.0)
     a_n = eigh_small(nrm.T @ nrm)[1][:, 0]
     axes = jnp.stack([evec[:, 0], evec[:, 1], evec[:, 2], a_n])
-    p, res, rss, ok, steps = jax.vmap(lambda a: _cyl_from_axis(xc, v, a, max_steps))(axes)
+    p, res, rss, ok, steps = jax.lax.map(lambda a: _cyl_from_axis(xc, v, a, max_steps), axes)
     best = jnp.argmin(rss)
     pb = p[best]
     cen = pb[:3] + c
