@@ -385,9 +385,9 @@ def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
     represented in the PCA normals of 12-neighbourhoods (normals of a cylinder
     are perpendicular to its axis); each start gets an in-plane algebraic
     circle, then LM on the radial residual ``|(x - c) x a| - r``; the
-    converged start with the smallest residual sum wins (all four in one
-    ``vmap``). Fails closed with fewer than 5 valid points or no converged start,
-    and with reason ``unsupported_model`` when the points do not resolve any
+    converged start with the smallest residual sum wins (the four one after
+    another in a ``lax.map``: a batched LM loop compiles slower). Fails closed
+    with fewer than 5 valid points or no converged start, and with reason ``unsupported_model`` when the points do not resolve any
     curvature: the best plane explains them about as well (F-test of the two extra
     parameters, ``F < 7``, i.e. the 0.1 % level) or they are flat to rounding.
 
