@@ -62,7 +62,9 @@ NOTES = [
     "  SciPy 2.8 -> 1.5 at 128^3; compile 0.8 -> 1.6 s CPU. A batch is labelled as one volume",
     "  (members stacked along z with a background block layer between them), so it costs about B",
     "  single calls plus the rounds of its slowest member. Every label row of the tables above is",
-    "  the block code (regenerated after it landed).",
+    "  the block code (regenerated after it landed). The ratio moves with the machine's load: 1.5x",
+    "  SciPy at 128^3 at load 1.4 (the measurement above), 5.1x at load 10-12 (the rows of the",
+    "  re-measuring run named above the table); not reached either way.",
 ]
 
 
