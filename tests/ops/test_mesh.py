@@ -196,3 +196,28 @@ def test_mesh_to_volume_axes_on_an_off_centre_sphere():
     x, y, z = origin[0] + j * sp[2], origin[1] + i * sp[1], origin[2] + k * sp[0]
     r = np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
     assert np.abs(sdf - (R - r)).max() < 0.01 * R
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_vertex_normals_are_radial_on_a_sphere_and_flip_with_the_winding(dtype):
+    # ground truth: on a sphere the outward normal at a vertex is its direction from the centre
+    v, f = icosphere(3, 2.0)
+    c = np.array([5.0, -3.0, 7.0])
+    m = fsjax.Mesh(jnp.asarray(v + c, dtype), jnp.asarray(f))
+    n = np.asarray(fsjax.render.vertex_normals(m), float)
+    r = v / np.linalg.norm(v, axis=1, keepdims=True)
+    err = np.degrees(np.arccos(np.clip((n * r).sum(1), -1.0, 1.0)))
+    # the null: the normal of one face the vertex belongs to (no averaging)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    one = np.zeros_like(v)
+    for k in range(3):
+        one[f[:, k]] = fn                               # a later face overwrites: one face each
+    err_null = np.degrees(np.arccos(np.clip((one * r).sum(1), -1.0, 1.0)))
+    print(f"icosphere 1280 faces ({jnp.dtype(dtype).name}): vertex normal off radial max {err.max():.3f} deg "
+          f"(one face's normal: {err_null.max():.3f} deg)")
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    assert err.max() < 1.0 and err.max() < err_null.max()
+    # a flipped winding flips every normal (reported, not silently corrected)
+    nf = np.asarray(fsjax.render.vertex_normals(fsjax.Mesh(m.vertices, m.faces[:, ::-1])), float)
+    assert np.allclose(nf, -n, atol=1e-6)
