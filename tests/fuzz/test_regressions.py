@@ -154,6 +154,30 @@ GHOUGH = {"input": {"dtype": "float64", "kind": "scene", "size": [16, 16], "sort
           "stages": [{"op": "generalised_hough3d", "a": 1.0, "b": None, "params": {"max_instances": 2}, "slot": 0}]}
 
 
+# depth_to_tsdf documents the same -inf for fill_holes=False ("or both -inf, no data"); the warm-up
+# run of branch fuzz19 (seed 1) reported it NONFINITE on a constant depth map
+# (`Depth[constant 16x16 float32] -> depth_to_tsdf{fill_holes: False} -> fill_holes3d -> ...`).
+DEPTH_TSDF_HOLES = {"input": {"dtype": "float32", "kind": "constant", "size": [16, 16], "sort": "Depth", "variant": 0},
+                    "stages": [{"op": "depth_to_tsdf", "a": None, "b": None, "params": {"fill_holes": False},
+                                "slot": 0}]}
+
+
+def test_depth_to_tsdf_no_data_minus_inf_is_documented(monkeypatch):
+    import numpy as np
+
+    from fsjax.fuzz import _run
+
+    c = fz.Chain.from_json(DEPTH_TSDF_HOLES)
+    spec = fsjax.get_op("depth_to_tsdf")
+    assert fz.Runner([spec], grad=False, vmap=False).run(c).status == "ok"
+    x = fz.build_input(fsjax.Depth, "constant", (16, 16), "float32")
+    v = np.asarray(fsjax.ops.depth_to_tsdf(x, fill_holes=False).data)
+    assert np.isneginf(v).any() and not np.isnan(v).any() and not np.isposinf(v).any()
+    monkeypatch.setattr(_run, "DOCUMENTED_NEG_INF", {})   # the null: without the rule
+    o = fz.Runner([spec], grad=False, vmap=False).run(c)
+    assert (o.status, o.cls) == ("failed", "NONFINITE"), o
+
+
 def test_generalised_hough3d_instance_slots_are_its_contract():
     c = fz.Chain.from_json(GHOUGH)
     o = fz.Runner([fsjax.get_op("generalised_hough3d")], grad=False, vmap=False).run(c)
