@@ -130,9 +130,14 @@ def read_journal(path: str, workers: int, coverage: list[int] | None) -> None:
                 if isinstance(v, (int, float)) and not isinstance(v, bool):
                     t[k] += v
         none = sum(1 for d in part if not d["outcome"]["times"].get("compiles"))
-        print(f"{name}: {len(part)} chains, {t['cpu_s']:.0f} s CPU, {60 * len(part) / max(t['cpu_s'], 1e-9):.1f} per "
-              f"CPU-minute; compiling (wall) eager {t['eager_compile_s']:.0f} s, staged {t['staged_compile_s']:.0f} s, "
-              f"grad {t['grad_compile_s']:.0f} s; chains that compiled nothing {none}")
+        # an exact repeat of an earlier chain of the run tests nothing new (the generator redraws
+        # them since branch fuzz19); counted apart
+        distinct = len({json.dumps(d["chain"], sort_keys=True) for d in part})
+        print(f"{name}: {len(part)} chains ({distinct} distinct), {t['cpu_s']:.0f} s CPU, "
+              f"{60 * len(part) / max(t['cpu_s'], 1e-9):.1f} per CPU-minute ({60 * distinct / max(t['cpu_s'], 1e-9):.1f} "
+              f"distinct); compiling (wall) eager {t['eager_compile_s']:.0f} s, staged {t['staged_compile_s']:.0f} s, "
+              f"grad {t['grad_compile_s']:.0f} s of {t['compile_s']:.0f} s; wall {t['eager'] + t['staged'] + t['grad']:.0f} s "
+              f"in eager/staged/grad; chains that compiled nothing {none}")
 
 
 if __name__ == "__main__":

@@ -47,6 +47,8 @@ How chains are drawn so that compiled programs repeat (the cost of a chain is co
   the same probability (a knob that sizes an array gives the shapes every later program depends
   on); inputs leave the canonical size at that rate too (``NEW_COMBO_RATE = None``: the old
   one-level weighting, a drawn combination ``SEEN_WEIGHT`` (4) times an unseen one);
+* an exact repeat of a chain drawn before in the run (the same input, stages, knob values and
+  parameters) is drawn again (up to ``REPEAT_REDRAWS`` times): it would test nothing new;
 * ``workers`` processes (``fsjax fuzz --workers``, default ``min(2, CPU count)``) run the
   chains side by side, each covering every ``W``-th op first; ``coverage_share`` (a bounded
   run) covers a seeded share of the ops first;

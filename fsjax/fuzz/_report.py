@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from ._gen import Chain, DrawState, SortGraph, generate_chain
+from ._gen import REPEAT_REDRAWS, Chain, DrawState, SortGraph, generate_chain
 from ._run import CLASSES, Outcome, Runner
 
 __all__ = ["FuzzRun", "fuzz", "load_journal", "minimise", "replay", "write_report", "temporary_ops", "pool_sorts",
@@ -222,6 +222,7 @@ def fuzz(n_chains: int = 200, max_length: int = 6, seed: int = 0, *, specs: Sequ
                      f"ops executed {100 * run.executed_fraction():.0f} %, failures {cc}")
     run.seconds = time.perf_counter() - t0
     run.cpu_seconds = time.process_time() - c0
+    runner.stats["repeats"] = state.repeats   # exact repeats left after REPEAT_REDRAWS draws
     if minimise_failures:
         _minimise_all(run, runner, max_minimise_trials, minimise_budget_s)
     return run
@@ -477,6 +478,11 @@ def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "")
     L.append("## Figures\n")
     L.append("| figure | value |\n|---|---|")
     L.append(f"| chains run | {n} (seed {run.seed}, length 1-{run.max_length}, mean {sum(lens) / max(1, n):.2f}) |")
+    distinct = len({c for c, _ in run.results})
+    L.append(f"| distinct chains | {distinct} (exact repeats: {n - distinct}; a worker redraws a repeat of its own "
+             f"chains up to {REPEAT_REDRAWS} times) |")
+    L.append(f"| chains per CPU-minute | {60 * n / max(run.cpu_seconds, 1e-9):.1f} ({60 * distinct / max(run.cpu_seconds, 1e-9):.1f} "
+             f"distinct) |")
     L.append(f"| outcomes | {status.get('ok', 0)} ok, {status.get('refused', 0)} refused by a clear error, "
              f"{status.get('failed', 0)} failed, {status.get('error', 0)} fuzzer errors |")
     L.append(f"| stages executed eagerly | {stages_run} |")

@@ -970,6 +970,7 @@ def _vjp_program(f, tdef, fl: tuple):
 # (the op's docstring says so); only -inf is explained, NaN or +inf still fail
 DOCUMENTED_NEG_INF = {
     "tsdf_fuse": ("fill_holes", False),   # unobserved voxels are -inf with fill_holes=False
+    "depth_to_tsdf": ("fill_holes", False),   # "or both -inf, no data (False)" (reported NONFINITE, seed 1)
 }
 # ops whose Image output documents NaN where the value is undefined (an Image has no flag);
 # only NaN is explained, an inf still fails

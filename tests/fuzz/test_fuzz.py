@@ -456,3 +456,28 @@ def test_bounded_fuzz_whole_registry():
     assert run.stats["stage_calls"] >= BOUNDED_CHAINS and run.stats["whole"] == whole >= 1
     bad = [f"{o.signature}\n  {json.dumps(c.to_json())}" for c, o in run.failures if o.cls in fz.BLOCKING]
     assert not bad, "\n".join(bad)
+
+
+def test_exact_repeats_are_drawn_again(monkeypatch):
+    """An exact repeat of an earlier chain (input, stages, knob values, parameters) tests nothing
+    new and costs ~0 s (its results come from the earlier prefix): it only inflated the count (the
+    fifth full run: 59 of 359). The generator draws again; the null, one draw, repeats."""
+    import random
+
+    from fsjax.fuzz import _gen
+    from fsjax.fuzz._gen import DrawState
+    from fsjax.fuzz._report import _default_specs
+
+    specs = list(_default_specs())
+    graph = fz.SortGraph(specs, fz.pool_sorts(specs))
+
+    def draw(n):
+        st, rng = DrawState(), random.Random(0)
+        chains = [fz.generate_chain(graph, rng, 6, st) for _ in range(n)]
+        return len(set(chains)), st.repeats
+
+    distinct, left = draw(600)
+    assert (distinct, left) == (600, 0)
+    monkeypatch.setattr(_gen, "REPEAT_REDRAWS", 1)   # the null: no second draw
+    distinct0, left0 = draw(600)
+    assert distinct0 < 570 and left0 == 600 - distinct0, (distinct0, left0)

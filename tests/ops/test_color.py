@@ -198,12 +198,19 @@ def test_lab_gradient_finite_at_black():
 # ---------------------------------------------------------------------------
 
 
-def _decorr_numpy(x, target=None):
+def _decorr_numpy(x, target=None, max_gain=None, soft=True):
+    """The docstring's formula in NumPy (float64): the cap and the smooth factor w, optional."""
     f = x.reshape(-1, 3)
     mu = f.mean(0)
     c = np.cov(f.T, bias=True)
     lam, v = np.linalg.eigh(c)
-    w = v @ np.diag(1 / np.sqrt(lam)) @ v.T
+    lam = np.maximum(lam, 0.0)
+    g = 1 / np.sqrt(lam if max_gain is None else np.maximum(lam, lam.max() / max_gain**2))
+    if soft:
+        eps = np.finfo(np.float64).eps
+        u = lam / (eps ** (2 / 3) * np.trace(c) + (64 * eps * np.abs(f).max()) ** 2)
+        g = g * u**4 / np.sqrt(u**8 + 1)
+    w = v @ np.diag(g) @ v.T
     s = np.sqrt(np.diag(c)) if target is None else np.full(3, target)
     return (mu + (f - mu) @ w * s).reshape(x.shape)
 
@@ -242,19 +249,28 @@ def test_decorrelation_stretch_degenerate_inputs():
     grey = np.stack([g, g, g], -1)
     out = np.asarray(decorrelation_stretch(Color(grey)).data)
     assert np.all(np.isfinite(out)) and np.corrcoef(out[..., 0].ravel(), g.ravel())[0, 1] > 1 - 1e-12
-    # rank 2 (B an exact combination of R, G): a perturbation of 1e-9 must not blow up
+    # rank 2 (B an exact combination of R, G)
     rg = rng.uniform(0.2, 0.8, (12, 12, 2))
     r2 = np.concatenate([rg, (0.5 * rg[..., :1] + 0.3 * rg[..., 1:])], axis=-1)
     o1 = np.asarray(decorrelation_stretch(Color(r2)).data)
-    o2 = np.asarray(decorrelation_stretch(Color(r2 + 1e-9 * rng.standard_normal(r2.shape))).data)
-    d_cap = _d(o1, o2)
-    # without the gain cap the null axis would be stretched to full variance (the null method)
-    o_uncapped = np.asarray(decorrelation_stretch(Color(r2 + 1e-9 * rng.standard_normal(r2.shape)),
-                                                  max_gain=1e12).data)
-    d_uncapped = _d(o1, o_uncapped)
-    print(f"decorrelation_stretch on a rank-2 image + 1e-9 noise: change {d_cap:.2e} (cap 100) "
-          f"vs {d_uncapped:.2e} (cap 1e12)")
-    assert d_cap < 1e-5 and d_uncapped > 100 * d_cap
+    # noise at the rounding level (1e-9: the null axis's eigenvalue ~1e-18, below r / 1e4) is not
+    # stretched, whatever the cap: the smooth factor w takes it to zero
+    n9 = r2 + 1e-9 * rng.standard_normal(r2.shape)
+    d9 = _d(o1, decorrelation_stretch(Color(n9)).data)
+    d9_uncapped = _d(o1, decorrelation_stretch(Color(n9), max_gain=1e12).data)
+    # the null method: the cap alone (the op before the fix) stretches it by max_gain
+    d9_cap_only = _d(o1, _decorr_numpy(n9, max_gain=100.0, soft=False))
+    # noise well above r (1e-5: eigenvalue ~1e-10, r ~ 1e-12) is a real, weak axis: the cap bounds
+    # its stretch; without the cap it is stretched to full variance (the null method)
+    n5 = r2 + 1e-5 * rng.standard_normal(r2.shape)
+    d5 = _d(o1, decorrelation_stretch(Color(n5)).data)
+    d5_uncapped = _d(o1, decorrelation_stretch(Color(n5), max_gain=1e12).data)
+    print(f"decorrelation_stretch, rank-2 image + 1e-9 noise: change {d9:.2e} (cap 100), {d9_uncapped:.2e} "
+          f"(cap 1e12), {d9_cap_only:.2e} (cap 100 without w); + 1e-5 noise: {d5:.2e} (cap 100) vs "
+          f"{d5_uncapped:.2e} (cap 1e12)")
+    assert d9 < 1e-8 and d9_uncapped < 1e-8 and d9_cap_only > 10 * d9
+    assert d5 < 1e-2 and d5_uncapped > 10 * d5
+    assert _d(decorrelation_stretch(Color(n5)).data, _decorr_numpy(n5, max_gain=100.0)) < 1e-10   # the formula
 
 
 # ---------------------------------------------------------------------------

@@ -425,10 +425,25 @@ def decorrelation_stretch(img: Color, /, *, target_sigma: float | None = None,
     A weak principal axis is mostly noise, and a null one (rank-deficient
     covariance, e.g. channels that are exact linear combinations of each other)
     would get an infinite gain. The gain of every axis is therefore capped at
-    ``max_gain`` times the gain of the strongest axis:
-    ``g_i = max(lam_i, lam_max / max_gain^2)^-1/2``. Axes above that floor are
-    whitened exactly; a null axis carries nothing and stays (near) zero, with no
-    blow-up under small perturbations. A constant image (variance below
+    ``max_gain`` times the gain of the strongest axis, and multiplied by a smooth
+    factor that goes to 0 on an axis at the dtype's rounding level:
+    ``g_i = w(lam_i) max(lam_i, lam_max / max_gain^2)^-1/2`` with
+    ``w = u^4 / sqrt(u^8 + 1)``, ``u = lam_i / r``,
+    ``r = eps^(2/3) tr(C) + (64 eps max|x|)^2`` (``eps`` the dtype's resolution:
+    ``r`` is 2.4e-5 of the total variance in float32, 3.7e-11 in float64; the
+    second term, the data's rounding, matters only on near-constant images).
+    Axes above the cap's floor are whitened exactly up to ``w``
+    (``1 - w <= (r / lam)^8 / 2``): in float64 to 1e-20 for every axis above 1e-8
+    of the total variance; **in float32 an axis with ``lam >= 1e-4 tr(C)`` is
+    whitened to a relative 6e-6**, one at ``lam = r`` gets ``w = 0.71``, and one below
+    ``r / 10`` gets ``w < 1e-4``: a null axis, whose eigenvalue is rounding (eigh's
+    error ~``eps lam_max``, ``u < 5e-3``), carries nothing. So a null axis's rounding
+    noise is not stretched and repeated stretches do not amplify it: six stretches
+    in a row of the pool's rank-2 float32 colour scene stay within 6e-7 of float64,
+    eager and ``jit`` within 1e-6 (with the cap alone, ``max_gain`` per call: 4.5e-3
+    after three, the chain fuzzer's MISMATCH). ``w`` is smooth, so the op stays
+    continuous and differentiable at rank-deficient input (a hard cut-off at the
+    rounding level was not). A constant image (variance below
     ``(64 eps max|x|)^2``, the mean's rounding) is returned as its mean, with or
     without ``target_sigma``.
     Gradients are finite when the eigenvalues are distinct and on a constant image
@@ -482,13 +497,28 @@ def decorrelation_stretch(img: Color, /, *, target_sigma: float | None = None,
     # 0 * inf = NaN even for a zero tangent. Below a variance of (64 eps max|x|)^2 the image is
     # taken as constant: the output is its mean, the decomposition is of a fixed matrix with
     # distinct eigenvalues, and the gradient stays finite.
-    tol = (64 * jnp.finfo(x.dtype).eps * jnp.max(jnp.abs(flat))) ** 2
+    eps = jnp.finfo(x.dtype).eps
+    tol = (64 * eps * jnp.max(jnp.abs(flat))) ** 2
     flat_cov = jnp.trace(cov) <= 3 * tol
     lam, vec = jnp.linalg.eigh(jnp.where(flat_cov, jnp.diag(jnp.arange(1.0, 4.0, dtype=cov.dtype)), cov))
+    lam = jnp.maximum(lam, 0.0)
     floor = jnp.maximum(lam, jnp.max(lam) / max_gain**2)
-    ok = floor > 0
-    ok = ok & ~flat_cov
-    gain = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, floor, jnp.ones_like(floor))), jnp.zeros_like(floor))
+    # A null axis (rank-deficient covariance) holds only rounding: eigh's absolute error on its
+    # eigenvalue, ~eps * lam_max, and the data's own rounding, below tol / 4096. The max_gain
+    # floor alone stretched it by max_gain at every call (float32: three stretches of a rank-2
+    # image drifted 4.5e-3 from float64 and eager from jit, the chain fuzzer's MISMATCH); a hard
+    # cut-off made the op discontinuous there. Each axis's gain is multiplied by the smooth
+    # factor w = u^4 / sqrt(u^8 + 1), u = lam / r (1 - u^-8 / 2 for u >> 1, u^4 -> 0 for
+    # u << 1), r = eps^(2/3) tr(C) + tol: eps^(-1/3) (float32 203, float64 1.6e5) times eigh's
+    # rounding, so a rounding eigenvalue gets w < 1e-9. The fourth power keeps a finite-difference
+    # step of 1e-7 of the data (u ~ 1e-3 on a null axis in float64) well inside w ~ 0 (with u^2
+    # and r = 64 eps tr(C), the contract's FD gradient failed); u is capped at 1e3 (w = 1 to
+    # 5e-25) so u^8 stays finite in float32.
+    r = jnp.where(flat_cov, 1.0, eps ** (2.0 / 3.0) * jnp.trace(cov) + tol)   # > 0 (all-zero image: tol = 0)
+    u4 = jnp.minimum(lam / r, 1e3) ** 4
+    w = u4 / jnp.sqrt(u4**2 + 1.0)
+    ok = (floor > 0) & ~flat_cov
+    gain = jnp.where(ok, w / jnp.sqrt(jnp.where(ok, floor, jnp.ones_like(floor))), jnp.zeros_like(floor))
     whiten = (vec * gain[None, :]) @ vec.T
     if target_sigma is None:
         var = jnp.diagonal(cov)
