@@ -65,6 +65,8 @@ def workloads(dt):
     w["normals_20k"] = (lambda x: estimate_normals(Points(x), k=16).normals, lambda: (cloud(20000, 0),))
     w["icp_p2plane_20k"] = (lambda s, t: icp(s, t, method="point_to_plane"),
                             lambda: (cloud(20000, 1) @ jnp.asarray(_rot(10.0), dt).T, cloud(20000, 0)))
+    w["icp_gicp_20k"] = (lambda s, t: icp(s, t, method="gicp"),
+                         lambda: (cloud(20000, 1) @ jnp.asarray(_rot(10.0), dt).T, cloud(20000, 0)))
 
     return w
 

@@ -362,21 +362,40 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     kmax = k_self if need_self else 1
     n_q = max(n_src, n_tgt) if need_self else n_src
     brute = n_src * n_tgt <= _BRUTE_LIMIT
-    if brute:
-        refs = _brute_refs(tgt, tv)
-        bsz = _brute_batch(n_q, n_tgt)
+    # GICP also needs the source's own neighbours (its covariances): the source's index (or brute
+    # force blocks) is built like the target's, both padded to n_q rows, and the one search program
+    # reads the structure picked by a traced ``which`` (0 target, 1 source) -- one compiled search
+    two = method == "gicp"
 
-        def nearest(x, k_used, n_rows, approx, gate):  # exact always (small problems)
+    def pad_to(x, v):
+        if x.shape[0] == n_q:
+            return x, v
+        return jnp.pad(x, ((0, n_q - x.shape[0]), (0, 0))), jnp.pad(v, (0, n_q - v.shape[0]))
+
+    def structures(make):
+        if not two:
+            return make(tgt, tv)
+        return jax.tree.map(lambda a, b: jnp.stack([a, b]), make(*pad_to(tgt, tv)), make(*pad_to(src, sv)))
+
+    def pick(tree, which):
+        return tree if not two else jax.tree.map(lambda a: a[which], tree)
+
+    if brute:
+        refs_all = structures(_brute_refs)
+        bsz = _brute_batch(n_q, n_q if two else n_tgt)
+
+        def nearest(x, k_used, n_rows, approx, gate, which=0):  # exact always (small problems)
+            refs = pick(refs_all, which)
             d2, idx, _ = _batched(lambda q: _brute_queries(refs, q, kmax), (x,), bsz, n_rows)
             miss = (jnp.arange(kmax)[None, :] >= k_used) | (jnp.arange(n_q)[:, None] >= n_rows) | (d2 > gate**2)
             return jnp.where(miss, -1, idx), jnp.where(miss, jnp.inf, d2)
     else:
-        index = build_index(tgt, tv, k=10, coarse=True)
+        index_all = structures(lambda x, v: build_index(x, v, k=10, coarse=True))
 
-        def nearest(x, k_used, n_rows, approx, gate):
+        def nearest(x, k_used, n_rows, approx, gate, which=0):
             # the fallback passes in one looped body: ~18 % less compile, ~8 % more run time at
             # 20,000 points (one process, float32; docs/benchmarks_icp.md)
-            return _query_grid_knn(index, x, kmax, approx, gate**2, k_used, n_rows, one_group=True)
+            return _query_grid_knn(pick(index_all, which), x, kmax, approx, gate**2, k_used, n_rows, one_group=True)
 
     def pad_rows(x):
         return x if x.shape[0] == n_q else jnp.concatenate([x, jnp.zeros((n_q - x.shape[0], 3), x.dtype)])
@@ -385,7 +404,6 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         aux0 = jnp.where(jnp.isfinite(tnormals), tnormals, 0.0) if has_normals else jnp.zeros((n_tgt, 3), dtype)
     elif method == "gicp":
         aux0 = jnp.zeros((n_tgt, 3, 3), dtype)
-        cs = local_covariances(src, sv, k=cov_k)
     else:
         aux0 = jnp.zeros((1,), dtype)
     inlier0 = jnp.asarray(0.0, dtype) if inlier_dist is None else inlier_dist / scale
@@ -420,7 +438,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         ok = jax.lax.cond(overlap < 1, trim, lambda ok: ok, ok)
         return jnp.maximum(j, 0), d2, ok
 
-    def step(r, t, p, j, ok, aux):
+    def step(r, t, p, j, ok, aux, aux_src):
         w = ok.astype(dtype)
         q = tgt[j]
         n_ok = jnp.sum(ok)
@@ -431,7 +449,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         elif method == "point_to_plane":
             dr, dt, geom_ok = _p2plane_step(p, q, aux[j], w, inner_steps)
         else:
-            winv, inv_ok = _sym_inv3(aux[j] + jnp.einsum("ij,njk,lk->nil", r, cs, r))
+            winv, inv_ok = _sym_inv3(aux[j] + jnp.einsum("ij,njk,lk->nil", r, aux_src, r))
             dr, dt, geom_ok = _gn_steps(_gicp_moment, p, q, winv, w * inv_ok, inner_steps)
         r_new = dr @ r
         t_new = dr @ t + dt
@@ -452,19 +470,34 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     # come from exact correspondences (the evaluation turn is exact). A first turn (``first``)
     # searches the target's own neighbours instead and only sets ``aux`` and the inlier distance.
     def body(st):
-        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl = st
+        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl, src_self, cs = st
         stop = ~first & (done | (bad != OK) | (it >= max_iterations))
         p = src @ r.T + t
-        idx, d2 = nearest(jnp.where(first, pad_rows(tgt), pad_rows(p)), jnp.where(first, k_self, 1),
-                          jnp.where(first, n_tgt, n_src), ~first & ~exact & ~stop, jnp.where(first, jnp.inf, gate))
+        # first turns: the source's own neighbours (GICP only), then the target's; then the pairs
+        self_x = jnp.where(src_self, pad_rows(src), pad_rows(tgt)) if two else pad_rows(tgt)
+        self_n = jnp.where(src_self, n_src, n_tgt) if two else n_tgt
+        idx, d2 = nearest(jnp.where(first, self_x, pad_rows(p)), jnp.where(first, k_self, 1),
+                          jnp.where(first, self_n, n_src), ~first & ~exact & ~stop, jnp.where(first, jnp.inf, gate),
+                          (first & src_self).astype(jnp.int32))
 
         def first_turn(_):
+            if two:
+                def src_turn(_):  # the covariances of local_covariances(src, sv, k=cov_k)
+                    cov, _ = _cov_from_idx(src, idx[:n_src, :cov_k])
+                    cs2 = _gicp_cov(jnp.where(sv[:, None, None], cov, jnp.nan))
+                    return st[:16] + (jnp.bool_(False), cs2)
+
+                def tgt_turn(_):
+                    aux2, inl2 = from_self(idx, d2, aux, inl)
+                    return st[:13] + (jnp.bool_(False), aux2, inl2) + st[16:]
+
+                return jax.lax.cond(src_self, src_turn, tgt_turn, None)
             aux2, inl2 = from_self(idx, d2, aux, inl)
-            return st[:13] + (jnp.bool_(False), aux2, inl2)
+            return st[:13] + (jnp.bool_(False), aux2, inl2) + st[16:]
 
         def turn(_):
             j, d2c, ok = correspond(idx, d2)
-            r2, t2, small, bad2, n2, dang = step(r, t, p, j, ok, aux)
+            r2, t2, small, bad2, n2, dang = step(r, t, p, j, ok, aux, cs)
             # the approximate phase also ends when it stops paying: the mean squared distance no
             # longer falls (approximate pairs can cycle by ~1e-3 deg and never make the step small)
             ms = jnp.sum(jnp.where(ok, d2c, 0.0)) / jnp.maximum(jnp.sum(ok), 1)
@@ -488,14 +521,15 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
                     jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
                     jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled,
-                    best2, since2, wmax2, first, aux, inl)
+                    best2, since2, wmax2, first, aux, inl, src_self, cs)
 
         return jax.lax.cond(first, first_turn, turn, None)
 
     z = jnp.zeros(n_src, dtype)
     init = (jnp.int32(0), r0, t0, ~input_ok, input_reason.astype(jnp.int32), jnp.int32(0), z, sv, jnp.bool_(False),
             jnp.bool_(brute), jnp.asarray(jnp.inf, dtype), jnp.int32(0), jnp.asarray(0.0, dtype),
-            jnp.bool_(need_self), aux0, inlier0)
+            jnp.bool_(need_self), aux0, inlier0, jnp.bool_(two),
+            jnp.zeros((n_src, 3, 3) if two else (1,), dtype))
     out = jax.lax.while_loop(cond, body, init)
     it, r, t, done, bad, n_ok, d2a, ok = out[:8]
     inlier_dist = out[15]
