@@ -126,21 +126,28 @@ def run_more_cell(structure: str, method: str, *, seed: int = 0, with_object: bo
     return out
 
 
+def _chamfer_scene(structure, *, seed, with_object, dtype, clean, **kw):
+    """Scene, template (24^3 box), truth and the occupancy level (0.3 of the template's peak) of the chamfer
+    columns; ``kw`` goes to :func:`match3d_scene` (the shift, and the turn of the rotation column)."""
+    size, ts = 48, 24
+    scene, tpl, truth = match3d_scene(seed=seed, with_object=with_object, dtype=dtype, template_size=ts,
+                                      structure=structure, noise=0.01 if structure == "voxel" and not clean else 0.0,
+                                      clutter=0 if clean else 6, **kw)
+    if structure == "mesh":
+        scene, tpl = mesh_scene_at_template_density(scene, tpl, size), _on_grid(tpl, ts, 1.0)
+    elif structure != "voxel":
+        scene, tpl = _on_grid(scene, size, 1.0), _on_grid(tpl, ts, 1.0)
+    return scene, tpl, truth, 0.3 * float(jnp.max(tpl.data))
+
+
 def _chamfer_cell(structure, *, seed, with_object, dtype, timing, clean):
     """The chamfer column: as the ``ncc3d`` cell of :func:`run_grid_cell` (same seeds, scenes, null)."""
     from .. import ops
 
     rng = np.random.default_rng(100 + seed)
-    size, ts = 48, 24
-    scene, tpl, truth = match3d_scene(shift=rng.uniform(-5, 5, 3), seed=seed, with_object=with_object, dtype=dtype,
-                                      template_size=ts, structure=structure,
-                                      noise=0.01 if structure == "voxel" and not clean else 0.0,
-                                      clutter=0 if clean else 6)
-    if structure == "mesh":
-        scene, tpl = mesh_scene_at_template_density(scene, tpl, size), _on_grid(tpl, ts, 1.0)
-    elif structure != "voxel":
-        scene, tpl = _on_grid(scene, size, 1.0), _on_grid(tpl, ts, 1.0)
-    level = 0.3 * float(jnp.max(tpl.data))
+    ts = 24
+    scene, tpl, truth, level = _chamfer_scene(structure, seed=seed, with_object=with_object, dtype=dtype, clean=clean,
+                                              shift=rng.uniform(-5, 5, 3))
 
     def call():
         return ops.chamfer3d(scene, tpl, level=level)
@@ -162,16 +169,10 @@ def _chamfer_rot_cell(structure, *, seed, with_object, dtype, timing, clean):
     from .. import ops
 
     rng = np.random.default_rng(200 + seed)
-    size, ts = 48, 24
-    kw = dict(shift=rng.uniform(-5, 5, 3), seed=seed, with_object=with_object, dtype=dtype, structure=structure,
-              angles_deg=(rng.uniform(-180, 180), 0.0, 0.0), noise=0.01 if structure == "voxel" and not clean else 0.0,
-              clutter=0 if clean else 6)
-    scene, tpl, truth = match3d_scene(template_size=ts, **kw)
-    if structure == "mesh":
-        scene, tpl = mesh_scene_at_template_density(scene, tpl, size), _on_grid(tpl, ts, 1.0)
-    elif structure != "voxel":
-        scene, tpl = _on_grid(scene, size, 1.0), _on_grid(tpl, ts, 1.0)
-    level = 0.3 * float(jnp.max(tpl.data))
+    ts = 24
+    shift = rng.uniform(-5, 5, 3)  # drawn before the angle, as before
+    scene, tpl, truth, level = _chamfer_scene(structure, seed=seed, with_object=with_object, dtype=dtype, clean=clean,
+                                              shift=shift, angles_deg=(rng.uniform(-180, 180), 0.0, 0.0))
 
     def call():
         return ops.chamfer_rotation_z3d(scene, tpl, level=level)
