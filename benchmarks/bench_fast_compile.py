@@ -1,0 +1,71 @@
+"""Compile and run time of the compile-dominated fits with XLA:CPU's default emitters vs its
+older loop emitters (compiler option ``xla_cpu_use_fusion_emitters=False``), one process,
+interleaved.
+
+    python benchmarks/bench_fast_compile.py
+
+The fits are jitted here from their undecorated functions (``__wrapped__``), once with and once
+without the option, so the library's own decoration does not decide both columns. Compile is
+process CPU seconds of ``lower(...).compile()``; run time the median of 9 interleaved calls;
+"max |diff|" compares every output leaf of the two programs (NaN where both give NaN).
+
+The library does not set the option on its own programs: ``jax.jit(..., compiler_options=...)``
+is refused on a jit nested in another jit (ValueError in jax 0.10), and these fits are called
+inside users' jits; a top-level-only dispatch would be needed. The test suite sets the flag
+globally (tests/conftest.py).
+"""
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from fsjax.fit import primitives3d as P
+from fsjax.ops.measure2d import _fit2d as F
+
+FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+
+
+def _cases():
+    rng = np.random.default_rng(0)
+    t = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    e = np.stack([20 + 5 * np.sin(t), 30 + 12 * np.cos(t)], -1) + 0.05 * rng.standard_normal((64, 2))
+    e = jnp.asarray(e, jnp.float32)
+    v = jnp.ones(64, bool)
+    u = rng.normal(size=(600, 3))
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    pts = jnp.asarray(u[u[:, 2] > 0.3][:150] + 0.01 * rng.normal(size=(150, 3)), jnp.float32)
+    kw = dict(robust=True, rounds=3, refine=True, max_steps=100)
+    return [
+        ("fit_ellipse core", lambda p, v: F._fit_ellipse_core.__wrapped__(p, v, 3.0, 0.15, 0.1, **kw), (e, v)),
+        ("fit_circle core", lambda p, v: F._fit_circle_core.__wrapped__(p, v, 3.0, 0.15, 0.1, **kw), (e, v)),
+        ("fit_cylinder", lambda x: P.fit_cylinder.__wrapped__(x), (pts,)),
+        ("select_model", lambda x: P.select_model.__wrapped__(x), (pts,)),
+    ]
+
+
+def main():
+    for name, fn, x in _cases():
+        res = {}
+        for lab, opt in (("default", None), ("fast", FAST_COMPILE)):
+            c = time.process_time()
+            f = jax.jit(fn, compiler_options=opt).lower(*x).compile()
+            res[lab] = (f, time.process_time() - c)
+        times = {"default": [], "fast": []}
+        for _ in range(9):
+            for lab in times:
+                t0 = time.perf_counter()
+                jax.block_until_ready(res[lab][0](*x))
+                times[lab].append(time.perf_counter() - t0)
+        la = jax.tree_util.tree_leaves(res["default"][0](*x))
+        lb = jax.tree_util.tree_leaves(res["fast"][0](*x))
+        d = max(float(np.max(np.abs(np.asarray(p, float) - np.asarray(q, float)))) if np.asarray(p).size else 0.0
+                for p, q in zip(la, lb))
+        print(f"{name:18s} compile CPU {res['default'][1]:.2f} -> {res['fast'][1]:.2f} s; "
+              f"run {np.median(times['default']) * 1e3:.2f} -> {np.median(times['fast']) * 1e3:.2f} ms; "
+              f"max |diff| {d:.2e}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
