@@ -117,6 +117,12 @@ def test_capacity_jit_flags_and_eager_grows():
     # an eager call with the same too-small buffer is complete
     grown = fsjax.ops.marching_cubes(vol, level=0.0, max_faces=nf // 2)
     assert not bool(grown.truncated) and int(grown.face_valid.sum()) == nf
+    # fewer face slots than active cubes (the face count is then known only after a second
+    # call): the eager result is still the complete mesh, face for face
+    tiny = fsjax.ops.marching_cubes(vol, level=0.0, max_faces=4)
+    assert not bool(tiny.truncated)
+    assert np.array_equal(_mesh_np(tiny)[1], _mesh_np(full)[1])
+    assert np.array_equal(_mesh_np(tiny)[0], _mesh_np(full)[0])
     # too few vertex slots under jit: flagged, faces that lost a vertex dropped
     few = jax.jit(lambda v: fsjax.ops.marching_cubes(v, level=0.0, max_vertices=50))(vol)
     assert bool(few.truncated)

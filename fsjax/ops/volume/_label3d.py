@@ -24,7 +24,9 @@ Conventions:
   grandparent key among its joined neighbours (a scatter-min) and then jumps pointers
   twice. Pointers only decrease and stay inside the component, so the loop stops at its
   fixed point (every block points at the smallest voxel index of its component) with no
-  iteration cap to hit. Roots are ranked by an exact cumulative sum over the voxels.
+  iteration cap to hit. Roots are ranked by running popcounts of one mark per (z, y, x // 2)
+  cell (a block is two voxels wide in x, so no two roots share a cell and the cells' raster
+  order is the roots'), packed 32 to a word.
 * Nothing here is differentiable (a threshold in, integers out).
 """
 
@@ -103,6 +105,12 @@ def neighbour_min3d(g, connectivity: int, fill):
 # voxels of a 2x2x2 cube are 26-neighbours, of a 1x2x2 square (in y, x) 18-neighbours, of a
 # 1x1x2 pair 6-neighbours.
 _BLOCK = {26: (2, 2, 2), 18: (1, 2, 2), 6: (1, 1, 2)}
+
+
+def pos_of(connectivity: int) -> list[tuple[int, int, int]]:
+    """Positions ``(z, y, x)`` inside a block, raster order."""
+    bs = _BLOCK[connectivity]
+    return [(a, b, c) for a in range(bs[0]) for b in range(bs[1]) for c in range(bs[2])]
 
 
 @functools.cache
@@ -248,13 +256,33 @@ def _label_stacked(m, b: int, connectivity: int):
     first = jnp.full((d, h, w), len(sub), jnp.int32)  # position of each block's first foreground voxel
     for i in reversed(range(len(sub))):
         first = jnp.where(sub[i], i, first)
-    root_at = jnp.where(is_root.reshape(d, h, w), first, -1)
-    marks = _to_voxels([root_at == i for i in range(len(sub))], bs, dims).reshape(-1)
-    cs = jax.vmap(cumsum_count)(marks.reshape(b, -1))   # raster order of each component's first voxel
-    rank = jnp.where(is_root, cs.reshape(-1).at[key].get(mode="promise_in_bounds"), 0)
+    # Rank the roots in raster order of their first voxels. Every block is 2 voxels wide in x,
+    # so no two roots share a "cell" (z, y, x // 2), and the raster order of the cells is the
+    # raster order of the roots: one root mark per cell, packed 32 cells to a uint32 word, a
+    # running popcount over the words, and a root's rank is its word's running count plus the
+    # marks below it in the word (a cumulative sum over the voxels cost ~4x more, measured).
+    pz = jnp.asarray([q[0] for q in pos_of(connectivity)], jnp.int32)[first]
+    py = jnp.asarray([q[1] for q in pos_of(connectivity)], jnp.int32)[first]
+    root3 = is_root.reshape(d, h, w)
+    cells = jnp.stack([root3 & (pz == a) & (py == c) for a in range(bs[0]) for c in range(bs[1])])
+    cells = cells.reshape(bs[0], bs[1], d, h, w).transpose(2, 0, 3, 1, 4).reshape(-1)
+    n_cells = cells.shape[0]
+    cw = jnp.pad(cells, (0, -n_cells % 32)).reshape(-1, 32).astype(jnp.uint32)
+    words = jnp.sum(cw << jnp.arange(32, dtype=jnp.uint32), axis=1, dtype=jnp.uint32)
+    pc = lax.population_count(words).astype(jnp.int32)
+    wstart = cumsum_count(pc) - pc
+    bz, by, bx = jnp.meshgrid(jnp.arange(d, dtype=jnp.int32), jnp.arange(h, dtype=jnp.int32),
+                              jnp.arange(w, dtype=jnp.int32), indexing="ij")
+    c = (((bz * bs[0] + pz) * (h * bs[1]) + by * bs[1] + py) * w + bx).reshape(-1)
+    below = lax.population_count(words[c >> 5] & ((jnp.uint32(1) << (c & 31).astype(jnp.uint32)) - 1))
+    rank = wstart[c >> 5] + below.astype(jnp.int32) + 1
+    # ranks restart in every member (members are whole block layers along z, in order)
+    per = jnp.sum(is_root.reshape(b, -1), axis=1, dtype=jnp.int32)
+    before = jnp.cumsum(per) - per
+    rank = jnp.where(is_root, (rank.reshape(b, -1) - before[:, None]).reshape(-1), 0)
     lab = jnp.where(fgb, rank.at[node_of(f)].get(mode="promise_in_bounds"), 0).astype(jnp.int32)
     lab = jnp.where(m, _to_voxels(lab.reshape(d, h, w), bs, dims), 0)
-    return lab, cs[:, -1]
+    return lab, per
 
 
 def _ranked(fg, connectivity: int):
