@@ -19,10 +19,10 @@ fsjax compile: process CPU seconds around ``jax.jit(f).trace(...).lower().compil
 machine is shared: CPU seconds are steadier than wall), and the wall time, one program per size.
 
 ``--mem N`` (default 200000): peak memory at N, one fresh subprocess per (workload, method):
-``resource.getrusage(RUSAGE_SELF).ru_maxrss`` (the whole process: interpreter, libraries, inputs,
-compilation) after the imports and after making the inputs and compiling; then, after a warm-up
-call, the high-water mark is reset (``/proc/self/clear_refs``; this resets ``ru_maxrss`` too) and
-one call made: ``ru_maxrss`` after it (resident set plus that call's peak) and its growth
+the peak resident set ``VmHWM`` of ``/proc/self/status`` (the whole process: interpreter, libraries,
+inputs, compilation; not ``ru_maxrss``, which a child inherits from its parent) after the imports and
+after making the inputs and compiling; then, after a warm-up call, the high-water mark is reset
+(``/proc/self/clear_refs``) and one call made: ``VmHWM`` after it (resident set plus that call's peak) and its growth
 (``_harness.rss_peak_bytes``: a lower bound where an allocator reuses memory it holds), plus the
 XLA buffers of the compiled fsjax program (temporaries + outputs).
 
@@ -52,7 +52,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _harness import json_subprocess, rss_peak_bytes, time_round_robin, xla_memory_bytes  # noqa: E402
+from _harness import _status_kb, json_subprocess, rss_peak_bytes, time_round_robin, xla_memory_bytes  # noqa: E402
 
 from fsjax import Points  # noqa: E402
 from fsjax.data import surface_points  # noqa: E402
@@ -182,12 +182,18 @@ def run_size(n: int, repeats: int, log) -> list[dict]:
 
 
 def _maxrss_bytes() -> int:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    """High-water mark of this process's resident set: ``VmHWM`` of ``/proc/self/status``, which is
+    new at ``exec`` and reset by ``clear_refs``; ``ru_maxrss`` where there is no ``/proc``. (``ru_maxrss``
+    survives fork + exec and ``clear_refs``: the subprocesses of a full run all reported their parent's
+    peak, 1,625 MiB at 200,000 points, whatever they used.)"""
+    try:
+        return _status_kb("VmHWM") * 1024
+    except (OSError, KeyError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
 def mem_case(wl: str, m: str, n: int) -> dict:
-    # ru_maxrss survives fork + exec: a child of a large parent starts at the parent's peak. Reset
-    # the high-water mark first (it then restarts from the resident set after the imports).
+    # reset the high-water mark first (it then restarts from the resident set after the imports)
     try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
@@ -305,14 +311,14 @@ def markdown(res) -> str:
     if mem:
         n_mem = mem[0]["n"]
         lines += ["", f"Peak memory at {n_mem:,} points, one fresh subprocess per row "
-                  "(`ru_maxrss`, the whole process -- interpreter, JAX/Open3D/SciPy/fsjax imports, inputs, "
+                  "(peak resident set `VmHWM`, the whole process -- interpreter, JAX/Open3D/SciPy/fsjax imports, inputs, "
                   "compilation and calls: after the imports, and after making the inputs and compiling; then "
-                  "one warm-up call; then the high-water mark is reset (`/proc/self/clear_refs`, which also "
-                  "resets `ru_maxrss`) and one more call made: *peak of one call* = `ru_maxrss` after it "
+                  "one warm-up call; then the high-water mark is reset (`/proc/self/clear_refs`) "
+                  "and one more call made: *peak of one call* = `VmHWM` after it "
                   "(what is resident plus that call's peak), *growth* = its growth over the resident set "
                   "before it (a lower bound where an allocator reuses memory it holds); *XLA buffers* = "
                   "temporaries + outputs of the compiled fsjax program):", "",
-                  "| workload | method | ru_maxrss after imports | after inputs + compile | peak of one call | "
+                  "| workload | method | peak RSS after imports | after inputs + compile | peak of one call | "
                   "growth of one call | XLA buffers |", "|---|---|---|---|---|---|---|"]
         for m in mem:
             if "error" in m:

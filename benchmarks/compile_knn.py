@@ -3,16 +3,18 @@
 Each workload is ``jax.jit(f).trace(...).lower().compile()`` with process CPU seconds around the
 compile (the machine is shared: CPU seconds, not wall), then the median of 3 runs of the compiled
 program (wall, and process CPU: the steadier figure on a shared machine). The load average is printed per line,
-and the number of kernels of the compiled program (see :func:`kernels`: load-free, follows the compile time).
+and the number of kernels of the compiled program, all and distinct (see :func:`kernels`: load-free; the
+distinct count is the better guide to the compile time).
 
     python benchmarks/compile_knn.py [--only knn10_20k,icp_p2plane_20k,...] [--x64]
 
-Workloads: ``knn{1,10,32}_{2k,20k}`` (``fsjax.ops.knn``, method auto: 2k x 2k is the blocked
+Workloads: ``index_build_20k`` (``build_index(coarse=True)`` alone, ICP's target index),
+``knn{1,10,32}_{2k,20k}`` (``fsjax.ops.knn``, method auto: 2k x 2k is the blocked
 brute force, 20k the grid), ``index_knn10_20k`` (``build_index(coarse=True)`` + exact
 ``query_knn`` k = 10, the index ICP builds), ``index_knn1_approx_20k`` (the same with k = 1 and a
 traced ``approx`` flag and gate, ICP's correspondence call), ``radius_20k`` (``radius_search``,
-capacity 32), ``normals_20k`` (``estimate_normals`` k = 16), ``icp_p2plane_20k`` (``icp``, 10 deg,
-two bunny samples). FPFH + RANSAC (``global_registration``, not jittable whole) is measured by
+capacity 32), ``normals_20k`` (``estimate_normals`` k = 16), ``icp_p2plane_20k`` / ``icp_gicp_20k`` (``icp``,
+10 deg, two bunny samples). FPFH + RANSAC (``global_registration``, not jittable whole) is measured by
 ``python benchmarks/bench_compile.py --sections targets --only fpfh_ransac``.
 """
 
@@ -55,6 +57,7 @@ def workloads(dt):
     for n, tag in ((2000, "2k"), (20000, "20k")):
         for k in (1, 10, 32):
             w[f"knn{k}_{tag}"] = (lambda r, q, k=k: knn(r, q, k), lambda n=n: (cloud(n, 0), cloud(n, 1)))
+    w["index_build_20k"] = (lambda r: build_index(r, k=10, coarse=True), lambda: (cloud(20000, 0),))
     w["index_knn10_20k"] = (lambda r, q: query_knn(build_index(r, k=10, coarse=True), q, 10),
                             lambda: (cloud(20000, 0), cloud(20000, 1)))
     w["index_knn1_approx_20k"] = (
@@ -71,24 +74,39 @@ def workloads(dt):
     return w
 
 
-def kernels(compiled) -> int:
+def kernels(compiled, distinct: bool = False) -> int:
     """Kernels of a compiled program: instructions outside fused computations, less the free ones
     (parameters, constants, tuples, bitcasts, control flow). XLA:CPU compiles each one (a fusion, a
     sort, a scatter, ...) into its own function, so the count follows the compile time and, unlike
-    CPU seconds on a shared machine, does not depend on the load."""
+    CPU seconds on a shared machine, does not depend on the load.
+
+    ``distinct=True`` counts each kernel once however often it occurs (a fusion by its fused
+    computation's text, names and metadata removed). Exact copies seem to compile about once: GICP's
+    second index build (identical shapes) was 105 of its 760 kernels but 1 of its 368 distinct ones,
+    and removing it left the compile CPU time unchanged within the noise (``docs/benchmarks_icp.md``),
+    so the distinct count is the better guide to what a change saves."""
     import re
 
     free = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast", "while", "conditional", "call"}
-    n = 0
+    comps = {}
     for comp in re.split(r"\n(?=(?:ENTRY )?%?[\w.\-]+ \(.*\) -> .* \{)", compiled.as_text()):
         head = comp.split("\n", 1)[0]
-        name = head.split(" ")[1] if head.startswith("ENTRY") else head.split(" ")[0]
+        comps[(head.split(" ")[1] if head.startswith("ENTRY") else head.split(" ")[0]).lstrip("%")] = comp
+
+    def text(s):  # an instruction or computation without its names and metadata
+        return re.sub(r"%[\w.\-]+", "%", re.sub(r", metadata=\{[^}]*\}", "", s))
+
+    keys = []
+    for name, comp in comps.items():
         if "fused" in name or "wrapped" in name:
             continue
         for line in comp.split("\n")[1:]:
             m = re.search(r"= \S+ ([\w\-]+)\(", line)
-            n += bool(m and m.group(1) not in free)
-    return n
+            if m and m.group(1) not in free:
+                called = re.search(r"calls=%?([\w.\-]+)", line)
+                body = comps.get(called.group(1), "") if called and m.group(1) == "fusion" else ""
+                keys.append(text(line.split("=", 1)[1].split(", calls=")[0]) + text(body.split("\n", 1)[-1]))
+    return len(set(keys)) if distinct else len(keys)
 
 
 def main():
@@ -118,7 +136,7 @@ def main():
             ts.append(time.perf_counter() - t0)
             cs.append(time.process_time() - u0)
         print(f"{name:24s} trace+lower {c1 - c0:6.2f}s cpu  compile {c2 - c1:6.2f}s cpu  "
-              f"kernels {kernels(comp):5d}  "
+              f"kernels {kernels(comp):5d} ({kernels(comp, distinct=True):4d} distinct)  "
               f"run {np.median(ts) * 1e3:9.1f} ms wall {np.median(cs) * 1e3:9.1f} ms cpu  "
               f"load {l0:.1f}->{os.getloadavg()[0]:.1f}", flush=True)
 

@@ -70,7 +70,10 @@ searches the target's own ``normal_k`` / ``cov_k`` / 2 nearest points (normals, 
 spacing), the other turns the k = 1 correspondences; the number of neighbours and of query rows
 are traced (a selection as wide as the first turn's k, a query array ``max(N, M)`` rows long), so
 the search is compiled once (it was twice; ICP point-to-plane at 20,000 points compiled in 15.3 s
-CPU before, ``docs/benchmarks_icp.md``). GICP's source covariances still use their own search. The normals / covariances and the registration modules search with the one
+CPU before, ``docs/benchmarks_icp.md``). GICP's source covariances go through the same search: the
+source's index is built beside the target's (one vmapped build of both, padded to ``max(N, M)`` rows)
+and a traced index picks the structure searched (``tests/fit/test_icp.py`` counts one search and
+one build while tracing). The normals / covariances and the registration modules search with the one
 public k-NN, :func:`fsjax.ops.knn` (any dimension, grid or brute force, a reusable index).
 """
 
@@ -375,7 +378,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     def structures(make):
         if not two:
             return make(tgt, tv)
-        return jax.tree.map(lambda a, b: jnp.stack([a, b]), make(*pad_to(tgt, tv)), make(*pad_to(src, sv)))
+        # both clouds' structures by one vmapped build: one compiled copy of the build, not two
+        (xt, vt), (xs, vs) = pad_to(tgt, tv), pad_to(src, sv)
+        return jax.vmap(make)(jnp.stack([xt, xs]), jnp.stack([vt, vs]))
 
     def pick(tree, which):
         return tree if not two else jax.tree.map(lambda a: a[which], tree)
