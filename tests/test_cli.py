@@ -148,3 +148,24 @@ def test_tour_list_and_one_section_by_name(tmp_path, capsys):
     assert "Frequency response of the Gaussian low-pass" in (tmp_path / "report.md").read_text()
     assert main(["tour", "--out", str(tmp_path), "--sections", "no_such_section"]) == 2
     assert "unknown section" in capsys.readouterr().err
+
+
+def test_tour_and_fuzz_ask_for_the_faster_compiling_emitters(monkeypatch, capsys):
+    """``tour`` and ``fuzz`` add ``--xla_cpu_use_fusion_emitters=false`` to XLA_FLAGS (kept
+    after the user's own flags); a value the user gave for that flag is left as it is; other
+    commands leave XLA_FLAGS alone."""
+    from fsjax import cli
+
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+    assert main(["tour", "--list"]) == 0
+    assert "edges" in capsys.readouterr().out
+    import os
+
+    assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1 --xla_cpu_use_fusion_emitters=false"
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    cli._prefer_fast_compile()
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    monkeypatch.delenv("XLA_FLAGS")
+    assert main(["ops", "--family", "filters"]) == 0
+    capsys.readouterr()
+    assert "XLA_FLAGS" not in os.environ
