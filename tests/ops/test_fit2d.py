@@ -365,12 +365,21 @@ def test_fit_says_no_circle_no_ellipse_with_a_reason(dtype):
                 "straight line": np.stack([5 + 0.5 * t, 3 + t], -1) + 0.3 * rng.standard_normal((60, 2)),
                 "two clusters": np.concatenate([rng.normal([10, 10], 1.0, (30, 2)), rng.normal([30, 25], 1.0, (30, 2))])}
     unsupported, ok, too_few, invalid = (reason_code(n) for n in ("unsupported_model", "ok", "too_few", "invalid_input"))
+    max_iter = reason_code("max_iterations")
     jfit = {op: jax.jit(lambda p, op=op: getattr(fsjax.ops, op)(fsjax.Contour(p))) for op in ("fit_circle", "fit_ellipse")}
     for name, p in no_model.items():
         for op in ("fit_circle", "fit_ellipse"):
+            # On points that define no ellipse the ellipse LM's path is chaotic (a flat valley):
+            # last-bit differences decide whether it converges and the support test then refuses
+            # it (unsupported_model) or it stops at max_steps (max_iterations). Measured on the two
+            # clusters, float64: 67 steps then refused with XLA:CPU's default emitters, 100 steps
+            # with its older loop emitters (the suite's setting, tests/conftest.py). Either way a
+            # refusal with NaN and a reason; which of the two is not a property of the points.
+            allowed = {unsupported} if op == "fit_circle" else {unsupported, max_iter}
             for f in (getattr(fsjax.ops, op)(fsjax.Contour(jnp.asarray(p.astype(dtype)))), jfit[op](jnp.asarray(p.astype(dtype)))):
-                assert not bool(f.converged) and int(f.reason) == unsupported, (op, name, int(f.reason))
-                assert "unsupported model" in f.message and bool(jnp.all(jnp.isnan(f.params)))
+                assert not bool(f.converged) and int(f.reason) in allowed, (op, name, int(f.reason))
+                assert ("unsupported model" in f.message or "maximum number of iterations" in f.message)
+                assert bool(jnp.all(jnp.isnan(f.params)))
     good = {"fit_circle": [_arc(80, 20, 0.6, 2 * np.pi, 1), _arc(60, 20, 0.6, np.pi / 2, 2)],
             "fit_ellipse": [_ell(80, 20, 10, 0.3, 2 * np.pi, 3), _ell(80, 20, 10, 0.3, np.pi, 4)]}
     for op, cases in good.items():
