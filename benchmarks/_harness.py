@@ -245,3 +245,31 @@ def json_subprocess(script: str, args: list[str], timeout: float, on_error: dict
         return json.loads(txt.strip().splitlines()[-1])
     except Exception as e:  # noqa: BLE001
         return {**on_error, "error": str(e)[:300]}
+
+
+def module_at(commit: str, relpath: str, name: str):
+    """The library module ``relpath`` (e.g. ``fsjax/ops/volume/_label3d.py``) as it was at git
+    ``commit``, imported as ``name`` beside the current one, with ``@register`` switched off
+    while it loads (its ops are not registered a second time). For old-vs-new A/B timings in
+    one process."""
+    import importlib.util
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    import fsjax.registry as reg
+
+    root = Path(__file__).resolve().parents[1]
+    src = subprocess.run(["git", "show", f"{commit}:{relpath}"], cwd=root, check=True, capture_output=True,
+                         text=True).stdout
+    path = Path(tempfile.mkdtemp()) / (name.rsplit(".", 1)[-1] + ".py")
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    real = reg.register
+    reg.register = lambda **kw: (lambda f: f)
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        reg.register = real
+    return mod

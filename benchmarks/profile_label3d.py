@@ -13,10 +13,7 @@ Run ``python benchmarks/profile_label3d.py --old COMMIT [--sizes 64,128]``.
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -27,27 +24,12 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(ROOT))
 
-from _harness import load_average, time_round_robin  # noqa: E402
+from _harness import load_average, module_at, time_round_robin  # noqa: E402
 
 
 def _module_at(commit: str):
-    """``fsjax/ops/volume/_label3d.py`` as it was at ``commit``, imported beside the current one
-    (its ops are not registered a second time)."""
-    import fsjax.registry as reg
-
-    src = subprocess.run(["git", "show", f"{commit}:fsjax/ops/volume/_label3d.py"], cwd=ROOT,
-                         check=True, capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "_label3d_old.py"
-    path.write_text(src)
-    spec = importlib.util.spec_from_file_location("fsjax.ops.volume._label3d_old", path)
-    mod = importlib.util.module_from_spec(spec)
-    real = reg.register
-    reg.register = lambda **kw: (lambda f: f)
-    try:
-        spec.loader.exec_module(mod)
-    finally:
-        reg.register = real
-    return mod
+    """``fsjax/ops/volume/_label3d.py`` as it was at ``commit`` (``_harness.module_at``)."""
+    return module_at(commit, "fsjax/ops/volume/_label3d.py", "fsjax.ops.volume._label3d_old")
 
 
 def main() -> None:

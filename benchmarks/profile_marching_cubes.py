@@ -25,9 +25,7 @@ import argparse
 import collections
 import glob
 import gzip
-import importlib.util
 import json
-import subprocess
 import sys
 import tempfile
 import time
@@ -40,7 +38,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(ROOT))
 
-from _harness import load_average, time_round_robin  # noqa: E402
+from _harness import load_average, module_at, time_round_robin  # noqa: E402
 
 
 def _sphere_field(n: int, radius: float) -> np.ndarray:
@@ -49,23 +47,8 @@ def _sphere_field(n: int, radius: float) -> np.ndarray:
 
 
 def _module_at(commit: str):
-    """``fsjax/ops/volume/_isosurface.py`` as it was at ``commit``, imported beside the current
-    one (its op is not registered a second time)."""
-    import fsjax.registry as reg
-
-    src = subprocess.run(["git", "show", f"{commit}:fsjax/ops/volume/_isosurface.py"], cwd=ROOT,
-                         check=True, capture_output=True, text=True).stdout
-    path = Path(tempfile.mkdtemp()) / "_isosurface_old.py"
-    path.write_text(src)
-    spec = importlib.util.spec_from_file_location("fsjax.ops.volume._isosurface_old", path)
-    mod = importlib.util.module_from_spec(spec)
-    real = reg.register
-    reg.register = lambda **kw: (lambda f: f)
-    try:
-        spec.loader.exec_module(mod)
-    finally:
-        reg.register = real
-    return mod
+    """``fsjax/ops/volume/_isosurface.py`` as it was at ``commit`` (``_harness.module_at``)."""
+    return module_at(commit, "fsjax/ops/volume/_isosurface.py", "fsjax.ops.volume._isosurface_old")
 
 
 def _compile_cpu(fn, *args) -> float:
