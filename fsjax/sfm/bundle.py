@@ -16,10 +16,13 @@ objective ``sum w_k s^2 log(1 + r_k^2 / s^2)``.
 Solver: Levenberg-Marquardt with Marquardt's diagonal damping; the normal equations are reduced to
 the cameras by the Schur complement (Triggs et al. 2000, sec. 6.1; Hartley and Zisserman 2004,
 A6.3): per-observation Jacobian blocks (2x6, 2x3), ``U`` and ``V`` accumulated by segment sums over
-the observation list, point blocks inverted 3x3 each; the camera-point coupling is scattered into
-an ``(N*6, M*3)`` matrix so that ``S = U - W V^-1 W^T`` is one matrix product. That coupling is
-dense in cameras x points (18 N M numbers), fine for tens of cameras; a sparse reduction over
-co-visible camera pairs would be needed for hundreds (not done here).
+the observation list, point blocks inverted 3x3 each. With ``obs_pairs`` (what
+:func:`fsjax.sfm.reconstruct` passes) the reduced camera matrix ``S = U - W V^-1 W^T`` is summed
+over the pairs of observations of one point, ``S_ij -= W_a V_p^-1 W_b^T``, a segment sum into
+``(N, N)`` 6x6 blocks: cost and memory follow the observations, not cameras x points. Without it,
+the coupling is scattered into a dense ``(N*6, M*3)`` matrix and ``S`` is one matrix product
+(18 N M numbers; kept as the reference the pair path is tested against). ``S`` itself is solved
+densely (``6N x 6N``): fine for hundreds of cameras, not for tens of thousands.
 
 Gauge: the caller freezes one camera fully and one translation coordinate of a second (7 dof).
 """
