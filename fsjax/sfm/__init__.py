@@ -2,6 +2,7 @@
 reconstruction, COLMAP text and PLY export (see docs/sfm.md)."""
 
 from .bundle import bundle_adjust_masked as bundle_adjust_masked
+from .bundle import observation_pairs as observation_pairs
 from .features import Features as Features
 from .features import detect_and_describe as detect_and_describe
 from .features import detect_and_describe_batch as detect_and_describe_batch

@@ -16,10 +16,13 @@ objective ``sum w_k s^2 log(1 + r_k^2 / s^2)``.
 Solver: Levenberg-Marquardt with Marquardt's diagonal damping; the normal equations are reduced to
 the cameras by the Schur complement (Triggs et al. 2000, sec. 6.1; Hartley and Zisserman 2004,
 A6.3): per-observation Jacobian blocks (2x6, 2x3), ``U`` and ``V`` accumulated by segment sums over
-the observation list, point blocks inverted 3x3 each; the camera-point coupling is scattered into
-an ``(N*6, M*3)`` matrix so that ``S = U - W V^-1 W^T`` is one matrix product. That coupling is
-dense in cameras x points (18 N M numbers), fine for tens of cameras; a sparse reduction over
-co-visible camera pairs would be needed for hundreds (not done here).
+the observation list, point blocks inverted 3x3 each. With ``obs_pairs`` (what
+:func:`fsjax.sfm.reconstruct` passes) the reduced camera matrix ``S = U - W V^-1 W^T`` is summed
+over the pairs of observations of one point, ``S_ij -= W_a V_p^-1 W_b^T``, a segment sum into
+``(N, N)`` 6x6 blocks: cost and memory follow the observations, not cameras x points. Without it,
+the coupling is scattered into a dense ``(N*6, M*3)`` matrix and ``S`` is one matrix product
+(18 N M numbers; kept as the reference the pair path is tested against). ``S`` itself is solved
+densely (``6N x 6N``): fine for hundreds of cameras, not for tens of thousands.
 
 Gauge: the caller freezes one camera fully and one translation coordinate of a second (7 dof).
 """
@@ -28,10 +31,11 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..fit.rigid import so3_exp
 
-__all__ = ["bundle_adjust_masked"]
+__all__ = ["bundle_adjust_masked", "observation_pairs"]
 
 
 def _project(K, R, t, X):
@@ -53,12 +57,33 @@ def _inv3(A):
     return c / jnp.where(ok, det, 1.0)[:, None, None], ok
 
 
+def observation_pairs(pi, capacity: int | None = None) -> np.ndarray:
+    """Every ordered pair ``(a, b)`` of observations of one point (``a == b`` included) from the
+    point index ``pi (O,)`` of each observation, as an ``(P, 2)`` int32 array padded with -1 to
+    ``capacity`` (default: no padding). Host-side numpy, once per observation list."""
+    pi = np.asarray(pi)
+    order = np.argsort(pi, kind="stable")
+    _, start, count = np.unique(pi[order], return_index=True, return_counts=True)
+    a_list, b_list = [], []
+    for c in np.unique(count):
+        rows = order[start[count == c][:, None] + np.arange(c)]  # (tracks of length c, c)
+        a_list.append(np.repeat(rows, c, axis=1).ravel())
+        b_list.append(np.tile(rows, (1, c)).ravel())
+    out = np.stack([np.concatenate(a_list), np.concatenate(b_list)], 1).astype(np.int32) if a_list else \
+        np.zeros((0, 2), np.int32)
+    if capacity is not None:
+        if capacity < len(out):
+            raise ValueError(f"observation_pairs: argument 'capacity' must be >= {len(out)} pairs, got {capacity}")
+        out = np.concatenate([out, np.full((capacity - len(out), 2), -1, np.int32)])
+    return out
+
+
 def _residuals(K, R, t, X, ci, pi, uv):
     return jax.vmap(lambda c, p, o: _project(K, R[c], t[c], X[p]) - o)(ci, pi, uv)
 
 
 @jax.jit
-def bundle_adjust_masked(K, R, t, X, ci, pi, uv, w_obs, cam_free, pt_free, *, loss_scale_px=1.0,
+def bundle_adjust_masked(K, R, t, X, ci, pi, uv, w_obs, cam_free, pt_free, *, obs_pairs=None, loss_scale_px=1.0,
                          max_iter=20, tol=1e-8):
     """LM + Schur bundle adjustment over weighted observation lists (see the module notes).
 
@@ -67,6 +92,10 @@ def bundle_adjust_masked(K, R, t, X, ci, pi, uv, w_obs, cam_free, pt_free, *, lo
       ci, pi: ``(O,)`` camera and point index of each observation; uv: ``(O, 2)`` pixels.
       w_obs: ``(O,)`` observation weights (0 = not in the problem).
       cam_free: ``(N, 6)`` 1 where a camera parameter (dw, dt) may move. pt_free: ``(M,)``.
+      obs_pairs: optional ``(P, 2)`` int: every ordered pair ``(a, b)`` of observations of one point
+        (``a == b`` included), padded with -1 (:func:`observation_pairs`). Given, the Schur
+        complement is summed over these pairs (``S_ij -= W_a V_p^-1 W_b^T``), with no dense
+        ``(N, M)`` coupling; the same normal equations up to the order of the sums.
       loss_scale_px: Cauchy scale. max_iter: LM cap (traced: no recompile). tol: relative cost decrease to stop.
 
     Returns:
@@ -110,14 +139,27 @@ def bundle_adjust_masked(K, R, t, X, ci, pi, uv, w_obs, cam_free, pt_free, *, lo
         Vd = V + lam * jnp.diagonal(V, axis1=1, axis2=2)[:, :, None] * eye3 + (1 - pf)[:, None, None] * eye3
         Vd = Vd + 1e-12 * eye3
         Vi, okv = _inv3(Vd)
-        Wd = jnp.zeros((n, m, 6, 3), dt_).at[ci, pi].add(Wk)  # dense camera x point coupling
-        Y = jnp.einsum("nmij,mjk->nmik", Wd, Vi)
         S = jnp.zeros((n, 6, n, 6), dt_).at[jnp.arange(n), :, jnp.arange(n), :].set(Ud)
-        S = S.reshape(6 * n, 6 * n) - Y.transpose(0, 2, 1, 3).reshape(6 * n, 3 * m) @ \
-            Wd.transpose(0, 2, 1, 3).reshape(6 * n, 3 * m).T
-        rhs = -gc.reshape(-1) + (Y.transpose(0, 2, 1, 3).reshape(6 * n, 3 * m) @ gp.reshape(-1))
-        dc = jnp.linalg.solve(S, rhs).reshape(n, 6) * cf
-        dp = -jnp.einsum("mij,mj->mi", Vi, gp + jnp.einsum("nmij,ni->mj", Wd, dc)) * pf[:, None]
+        if obs_pairs is None:
+            Wd = jnp.zeros((n, m, 6, 3), dt_).at[ci, pi].add(Wk)  # dense camera x point coupling
+            Y = jnp.einsum("nmij,mjk->nmik", Wd, Vi)
+            S = S.reshape(6 * n, 6 * n) - Y.transpose(0, 2, 1, 3).reshape(6 * n, 3 * m) @ \
+                Wd.transpose(0, 2, 1, 3).reshape(6 * n, 3 * m).T
+            rhs = -gc.reshape(-1) + (Y.transpose(0, 2, 1, 3).reshape(6 * n, 3 * m) @ gp.reshape(-1))
+            dc = jnp.linalg.solve(S, rhs).reshape(n, 6) * cf
+            dp = -jnp.einsum("mij,mj->mi", Vi, gp + jnp.einsum("nmij,ni->mj", Wd, dc)) * pf[:, None]
+        else:
+            Yk = jnp.einsum("kij,kjl->kil", Wk, Vi[pi])  # (O, 6, 3): W_a V_p^-1
+            pa, pb = obs_pairs[:, 0], obs_pairs[:, 1]
+            pv = (pa >= 0).astype(dt_)
+            pa, pb = jnp.maximum(pa, 0), jnp.maximum(pb, 0)
+            blocks = jnp.einsum("kil,kjl->kij", Yk[pa], Wk[pb]) * pv[:, None, None]  # (P, 6, 6)
+            S = S.transpose(0, 2, 1, 3) - jax.ops.segment_sum(blocks, ci[pa] * n + ci[pb], n * n).reshape(n, n, 6, 6)
+            S = S.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n)
+            rhs = -gc + jax.ops.segment_sum(jnp.einsum("kil,kl->ki", Yk, gp[pi]), ci, n)
+            dc = jnp.linalg.solve(S, rhs.reshape(-1)).reshape(n, 6) * cf
+            back = jax.ops.segment_sum(jnp.einsum("kij,ki->kj", Wk, dc[ci]), pi, m)  # sum_a W_a^T dc
+            dp = -jnp.einsum("mij,mj->mi", Vi, gp + back) * pf[:, None]
         Rn = so3_exp(dc[:, :3]) @ R
         tn, Xn = t + dc[:, 3:], X + dp
         c0, c1 = cost_of(R, t, X), cost_of(Rn, tn, Xn)

@@ -36,13 +36,11 @@ def _match(da, va, db, vb, ratio, block: int):
     nb = (n + pad) // block
     neg = jnp.asarray(-jnp.inf, da.dtype)
 
-    def body(carry, k):
+    def compute(carry, k, a, av):
         cval, cidx = carry
-        a = jax.lax.dynamic_slice_in_dim(da_p, k * block, block)
-        av = jax.lax.dynamic_slice_in_dim(va_p, k * block, block)
         sim = a @ db.T
         sim = jnp.where(av[:, None] & vb[None, :], sim, neg)
-        j1 = jnp.argmax(sim, 1)
+        j1 = jnp.argmax(sim, 1).astype(jnp.int32)
         s1 = jnp.max(sim, 1)
         s2 = jnp.max(jnp.where(jnp.arange(m)[None, :] == j1[:, None], neg, sim), 1)
         bi = jnp.argmax(sim, 0)
@@ -50,6 +48,16 @@ def _match(da, va, db, vb, ratio, block: int):
         better = bv > cval
         carry = (jnp.where(better, bv, cval), jnp.where(better, bi + k * block, cidx).astype(jnp.int32))
         return carry, (j1, s1, s2)
+
+    def skip(carry, k, a, av):  # a block without a valid row changes nothing and matches nothing
+        return carry, (jnp.zeros((block,), jnp.int32), jnp.full((block,), neg), jnp.full((block,), neg))
+
+    def body(carry, k):
+        a = jax.lax.dynamic_slice_in_dim(da_p, k * block, block)
+        av = jax.lax.dynamic_slice_in_dim(va_p, k * block, block)
+        # valid descriptors come first in fsjax's features, so the tail blocks of a set padded to
+        # its largest count are skipped (one fountain image: 3 of 5 blocks of 512 rows hold keypoints)
+        return jax.lax.cond(jnp.any(av), compute, skip, carry, k, a, av)
 
     init = (jnp.full((m,), neg), jnp.zeros((m,), jnp.int32))
     (cval, cidx), (j1, s1, s2) = jax.lax.scan(body, init, jnp.arange(nb))

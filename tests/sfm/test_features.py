@@ -78,3 +78,20 @@ def test_bad_input():
         detect_and_describe(jnp.zeros((64, 64)), n_octaves=6)
     with pytest.raises(TypeError, match="argument 'n_max'"):
         detect_and_describe(jnp.zeros((64, 64)), n_max=10.5)
+
+
+def test_traced_path_matches_eager_bucketed_path(pair):
+    """Eagerly, orientation and descriptors run on a bucket of rows holding the valid keypoints;
+    under ``jit`` the whole capacity runs in one program. Both must give the same features."""
+    import jax
+
+    img = jnp.asarray(pair[0][:128, :192], jnp.float32)
+    eager = detect_and_describe(img, n_max=1024, n_octaves=3)
+    traced = jax.jit(lambda im: detect_and_describe(im, n_max=1024, n_octaves=3))(img)
+    v = np.asarray(eager.valid)
+    assert 20 < v.sum() <= 512  # the bucket (512 rows) is smaller than the capacity (1024)
+    np.testing.assert_array_equal(v, np.asarray(traced.valid))
+    for name in ("uv", "scale", "angle_rad", "response", "descriptors"):
+        np.testing.assert_allclose(np.asarray(getattr(eager, name)), np.asarray(getattr(traced, name)), atol=1e-5,
+                                   err_msg=name)
+    assert np.asarray(eager.descriptors)[~v].sum() == 0 and eager.descriptors.shape == (1024, 128)
