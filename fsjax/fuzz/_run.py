@@ -639,7 +639,7 @@ class Runner:
                 self.stats["staged_prefix_hits"] += 1
                 cur = done
                 continue
-            member = _host_index(cur, 0) if batched else cur
+            member = _device(_host_index(cur, 0)) if batched else cur
             key = self._stage_key(st, member, extras, dtype)
             f = self._stage_fn(st, spec)
             mode = "vmap" if batched else "jit"
@@ -671,7 +671,7 @@ class Runner:
             if not hit:
                 # a new program: called again with the same shapes (the batch reversed) it must not
                 # compile, and a member's answer must not depend on its position
-                rev = jax.block_until_ready(_host_index(cur, slice(None, None, -1))) if batched else None
+                rev = jax.block_until_ready(_device(_host_index(cur, slice(None, None, -1)))) if batched else None
                 c0 = _COMPILES["n"]
                 if batched:
                     y2 = jax.block_until_ready(self._vprog[key](rev, extras, kn))
@@ -723,7 +723,7 @@ class Runner:
 
         terms = _output_weights(eager_outs[-1], np)   # on the host: nothing compiles
         total = sum(float(np.sum(np.where(ok, leaf, 0.0) * w)) for leaf, w, ok in terms)
-        ct = [np.where(ok, w, 0).astype(w.dtype) for _, w, ok in terms]
+        ct = _device([np.where(ok, w, 0).astype(w.dtype) for _, w, ok in terms])
         if not np.isfinite(total):
             return  # forward not finite: NONFINITE's business
         for i in range(len(chain.stages) - 1, -1, -1):
@@ -941,7 +941,8 @@ def _output_weights(y, xp=None) -> list:
 def _host_index(tree, index):
     """``v[index]`` for every leaf, on the host (numpy): the fuzzer's own slicing compiled a program
     per shape as eager dispatch. A weak-typed leaf keeps jax's indexing, so the stage programs'
-    keys and input types stay those of the jax arrays."""
+    keys and input types stay those of the jax arrays. A result fed to a compiled program goes
+    through :func:`_device` first."""
     import jax
     import numpy as np
 
@@ -949,8 +950,23 @@ def _host_index(tree, index):
                                   tree)
 
 
+def _device(tree):
+    """Host (numpy) leaves as device arrays (``jax.device_put``: nothing compiles). A compiled
+    program is always called with device arrays: jit's fast path keys its cache on the argument's
+    type too, so a program first called with a numpy array and later with a device array (a
+    stage's output) leaves the fast path, and once JAX's bounded trace caches (2048-4096 entries,
+    the eager primitives included) have dropped its entry, it traces and compiles again -- a false
+    RECOMPILE (watershed_split, the full run of this branch)."""
+    import jax
+    import numpy as np
+
+    return jax.tree_util.tree_map(lambda v: jax.device_put(v) if isinstance(v, (np.ndarray, np.generic)) else v,
+                                  tree)
+
+
 def _host_stack(x, x2):
-    """The batch ``[x, x2]`` of two pool inputs, stacked on the host (see :func:`_host_index`)."""
+    """The batch ``[x, x2]`` of two pool inputs, stacked on the host (see :func:`_host_index`), as
+    device arrays (:func:`_device`)."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -960,14 +976,15 @@ def _host_stack(x, x2):
             return jnp.stack([a, b])
         return np.stack([np.asarray(a), np.asarray(b)])
 
-    return jax.tree_util.tree_map(stack, x, x2)
+    return _device(jax.tree_util.tree_map(stack, x, x2))
 
 
 def _knob_array(st, dtype: str):
-    """A stage's two knob values (``None`` -> 0.5, never read) as the stage programs' argument."""
+    """A stage's two knob values (``None`` -> 0.5, never read) as the stage programs' argument (a
+    device array, :func:`_device`)."""
     import numpy as np
 
-    return np.asarray([0.5 if st.a is None else st.a, 0.5 if st.b is None else st.b], dtype=dtype)
+    return _device(np.asarray([0.5 if st.a is None else st.a, 0.5 if st.b is None else st.b], dtype=dtype))
 
 
 def _all_finite(tree) -> bool:
