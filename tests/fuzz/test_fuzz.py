@@ -424,7 +424,7 @@ def test_generated_chains_type_correct_and_report(planted, tmp_path):
 # the bounded fuzz CI runs: a fixed seed over the whole registry
 # ---------------------------------------------------------------------------
 
-BOUNDED_CHAINS = 32
+BOUNDED_CHAINS = 200
 BOUNDED_LENGTH = 4
 BOUNDED_SEED = 2026
 BOUNDED_COVERAGE = 0.05   # the coverage phase draws 5 % of the ops (12 of ~230, drawn from the seed) first
@@ -435,11 +435,12 @@ def test_bounded_fuzz_whole_registry():
     """A fixed-seed fuzz over the registry fails on any blocking class (SUSPECT, TYPEMISS,
     MISMATCH, SILENT_OVERFLOW, GRADNAN).
 
-    Sized for the suite (docs/fuzz.md): a cold coverage phase costs ~4 s of CPU per chain, so
-    the run covers a seeded 5 % of the ops first (``coverage_share``) and then repeats what it
-    drew, reaching other ops, inputs and knob values at the generator's ``NEW_COMBO_RATE``:
-    32 chains of length <= 4 (16 before, all in the coverage phase). Chains whose draw says so
-    also run compiled whole. Each failure's replayable chain is in the assertion message.
+    Sized for the suite (docs/fuzz.md): a cold coverage phase costs ~3-4 s of CPU per chain, so
+    the run covers a seeded 5 % of the ops first (``coverage_share``, 10 chains) and then repeats
+    what it drew, reaching other ops, inputs and knob values at the generator's
+    ``NEW_COMBO_RATE``: 200 chains of length <= 4 (32 before) cost 96 s of CPU cold (292 s of
+    wall time at load 7-12; 96 chains: 64 s). Chains whose draw says so also run compiled
+    whole. Each failure's replayable chain is in the assertion message.
     """
     import random
 
