@@ -33,6 +33,9 @@ def main() -> None:
     p.add_argument("--read", help="a run's journal (DIR/chains.jsonl): print its phases' rates and stop")
     p.add_argument("--workers", type=int, default=1, help="with --read: the run's worker processes")
     p.add_argument("--coverage", help="with --read: coverage-phase chains per worker, comma-separated")
+    p.add_argument("--minutes", type=float, default=None, help="stop drawing new chains after this many minutes")
+    p.add_argument("--coverage-share", type=float, default=1.0,
+                   help="the share of the ops the coverage phase draws first (fuzz's coverage_share)")
     a = p.parse_args()
     if a.read:
         read_journal(a.read, a.workers, [int(v) for v in a.coverage.split(",")] if a.coverage else None)
@@ -50,6 +53,8 @@ def main() -> None:
 
     jax.monitoring.register_event_duration_secs_listener(on)
     import fsjax.fuzz as fz
+
+    ways = _tag_ways()
     from fsjax.registry import list_ops
 
     list_ops()
@@ -59,6 +64,10 @@ def main() -> None:
         print("compile cache:", _compile_cache(a.compile_cache))
     t0 = time.perf_counter()
     kw = {} if a.whole is None else {"whole_chain_fraction": a.whole}
+    if a.minutes is not None:
+        kw["time_budget_s"] = 60 * a.minutes
+    if a.coverage_share != 1.0:
+        kw["coverage_share"] = a.coverage_share
     if a.journal:
         kw["journal"] = a.journal
     try:
@@ -66,13 +75,9 @@ def main() -> None:
     except TypeError:  # the fuzzer before per-stage programs: every chain compiled whole
         run = fz.fuzz(a.chains, a.length, a.seed, minimise_failures=False, grad=not a.no_grad)
     wall = time.perf_counter() - t0
-    ways = collections.Counter()
-    for _, o in run.results:
-        for k, v in o.times.items():
-            ways[k] += float(v)
     print(f"chains {len(run.results)}  wall {wall:.1f} s  cpu {run.cpu_seconds:.1f} s  "
           f"chains/min {60 * len(run.results) / wall:.1f}  load {os.getloadavg()[0]:.2f}")
-    print("per way (s):", {k: round(v, 1) for k, v in sorted(ways.items())})
+    _print_ways(ways, run)
     for k, (n, s) in sorted(ev.items()):
         print(f"  {k}: n={n} total={s:.1f} s")
     print("runner cache:", getattr(run, "stats", None))
@@ -111,6 +116,90 @@ def main() -> None:
     st = collections.Counter(o.status for _, o in run.results)
     print("outcomes:", dict(st), "classes:", {k: v for k, v in run.class_counts().items() if v})
     print("mean length", sum(len(c.stages) for c, _ in run.results) / max(1, len(run.results)))
+
+
+# eager op-by-op dispatch compiles a program per primitive (or jnp helper) and shape, named
+# "jit(<name>)"; an op's own module-level jit program is named after an fsjax function
+def _is_primitive(name: str) -> bool:
+    import sys
+
+    inner = name[4:-1] if name.startswith("jit(") else name
+    names = _is_primitive.__dict__.get("names")
+    if names is None:
+        names = _is_primitive.names = {getattr(v, "__name__", None) for m, mod in list(sys.modules.items())
+                                       if m.startswith("fsjax") and mod is not None
+                                       for v in list(vars(mod).values()) if callable(v)}
+    return inner not in names
+
+
+def _tag_ways():
+    """Tag the runner's ways (eager, staged, grad, whole) so that CPU time and every backend compile
+    (by the program's name) are summed per way, per phase (coverage / reuse)."""
+    import jax.monitoring
+
+    from fsjax.fuzz._report import Runner
+
+    state = {"way": "other", "phase": "coverage", "t": time.process_time()}
+    cpu = collections.Counter()
+    comp = collections.defaultdict(lambda: [0, 0.0])
+
+    def switch(way):
+        now = time.process_time()
+        cpu[(state["phase"], state["way"])] += now - state["t"]
+        state["t"], state["way"] = now, way
+
+    def on(event, duration, fun_name="?", **kw):
+        if event != "/jax/core/compile/backend_compile_duration":
+            return
+        way = state["way"]
+        if way == "eager":
+            way = "eager primitives" if _is_primitive(fun_name) else "eager op programs"
+        c = comp[(state["phase"], way)]
+        c[0] += 1
+        c[1] += duration
+
+    jax.monitoring.register_event_duration_secs_listener(on)
+
+    def wrap(name, way):
+        orig = getattr(Runner, name)
+
+        def f(self, *a, **k):
+            prev = state["way"]
+            if name == "run":
+                state["n"] = state.get("n", 0) + 1
+                if state["n"] > self.stats.get("coverage_chains", 1 << 30):
+                    state["phase"] = "reuse"
+            switch(way)
+            try:
+                return orig(self, *a, **k)
+            finally:
+                switch(prev if name != "run" else "other")
+
+        setattr(Runner, name, f)
+
+    wrap("run", "eager")   # a chain starts with the checker and the eager way
+    wrap("_staged", "staged")
+    wrap("_grad_staged", "grad")
+    wrap("_whole", "whole")
+    wrap("_grad", "whole")
+    return cpu, comp
+
+
+def _print_ways(ways, run) -> None:
+    cpu, comp = ways
+    for phase in ("coverage", "reuse"):
+        t = {k[1]: v for k, v in cpu.items() if k[0] == phase}
+        if not t:
+            continue
+        n = sum(1 for _ in run.results) if phase == "coverage" and "coverage_chains" not in run.stats else (
+            run.stats["coverage_chains"] if phase == "coverage" else len(run.results) - run.stats["coverage_chains"])
+        total = sum(t.values())
+        print(f"{phase} phase: {n} chains, {total:.0f} s CPU ({60 * n / max(total, 1e-9):.1f} per CPU-minute)")
+        for way in ("eager", "staged", "grad", "whole", "other"):
+            c = [(w, comp[(phase, w)]) for w in (("eager primitives", "eager op programs") if way == "eager" else (way,))]
+            cs = ", ".join(f"{w}: {n_} compiles {s:.0f} s wall" for w, (n_, s) in c if n_)
+            print(f"  {way:7s} CPU {t.get(way, 0.0):6.0f} s ({100 * t.get(way, 0.0) / max(total, 1e-9):4.1f} %)"
+                  f"{'; ' + cs if cs else ''}")
 
 
 def read_journal(path: str, workers: int, coverage: list[int] | None) -> None:

@@ -51,7 +51,12 @@ How chains are drawn so that compiled programs repeat (the cost of a chain is co
   parameters) is drawn again (up to ``REPEAT_REDRAWS`` times): it would test nothing new;
 * ``workers`` processes (``fsjax fuzz --workers``, default ``min(2, CPU count)``) run the
   chains side by side, each covering every ``W``-th op first; ``coverage_share`` (a bounded
-  run) covers a seeded share of the ops first;
+  run) covers a seeded share of the ops first. A worker compiles **every** program at XLA's
+  backend (LLVM) optimisation level 0 (``WORKER_XLA_FLAGS`` in its environment), the eager
+  way's op-by-op primitives and the ops' own jit programs included: cold, the eager way is
+  over half of a chain's CPU, nearly all compiling. What is not exercised there is LLVM's
+  optimised code of the ops' programs; the chains compiled whole keep XLA's default level
+  (explicitly). An in-process run (``workers=1``) leaves the process's XLA flags alone;
 * the pool's sizes: the canonical 16 x 16, the odd 15 x 17 for 15 % of scene/raster inputs,
   and the edge inputs 1 x 1 and 3 x 5 (rarer than before);
 * the runner keeps the **eager results and stage-program batches of every chain prefix that

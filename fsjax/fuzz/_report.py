@@ -24,6 +24,26 @@ __all__ = ["FuzzRun", "fuzz", "load_journal", "minimise", "replay", "write_repor
 # the fraction of chains also compiled whole (every chain runs through the per-stage programs)
 WHOLE_CHAIN_FRACTION = 0.05
 
+# Worker processes (``fuzz(workers >= 2)``, ``fsjax fuzz``) compile every program at XLA's backend
+# (LLVM) optimisation level 0, the eager way's op-by-op primitives and the ops' own jit programs
+# included (the stage programs always are: ``STAGE_COMPILER_OPTIONS``). Cold, the eager way is over
+# half of a chain's CPU and nearly all of it compiling; level 0 cut the CPU of the same 20 chains by
+# 16 % (docs/fuzz.md). HLO passes run as usual and LLVM at level 0 keeps IEEE semantics; what the
+# eager way no longer exercises is LLVM's optimised code of the ops' programs: the chains compiled
+# whole (``whole_chain_fraction``) still compile at XLA's default level (``WHOLE_COMPILER_OPTIONS``).
+# An in-process run (``workers=1``) leaves the process's XLA flags alone.
+WORKER_XLA_FLAGS = "--xla_backend_optimization_level=0"
+
+
+def _worker_xla_flags(current: str | None) -> str:
+    """``XLA_FLAGS`` for a worker process: the parent's flags plus ``WORKER_XLA_FLAGS`` (a level the
+    parent sets explicitly is kept)."""
+    current = (current or "").strip()
+    if "--xla_backend_optimization_level" in current:
+        return current
+    return (current + " " + WORKER_XLA_FLAGS).strip()
+
+
 # classes a CI fuzz fails on (the issue's goal: 0 of each)
 BLOCKING = ("SUSPECT", "TYPEMISS", "MISMATCH", "SILENT_OVERFLOW", "GRADNAN")
 
@@ -276,8 +296,18 @@ def _fuzz_parallel(n_chains, max_length, seed, *, workers, minimise_failures, gr
                      "x64": bool(jax.config.jax_enable_x64), "compile_cache": cache,
                      "print_progress": progress is not None})
     t0 = time.perf_counter()
-    with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
-        outs = [f.result() for f in [ex.submit(_worker, j) for j in jobs]]
+    saved = os.environ.get("XLA_FLAGS")
+    os.environ["XLA_FLAGS"] = _worker_xla_flags(saved)   # read by the spawned workers' XLA (WORKER_XLA_FLAGS)
+    try:
+        with ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as ex:
+            futures = [ex.submit(_worker, j) for j in jobs]
+            outs = [f.result() for f in futures]
+    finally:
+        if saved is None:
+            os.environ.pop("XLA_FLAGS", None)
+        else:
+            os.environ["XLA_FLAGS"] = saved
+    run.stats["worker_xla_flags"] = _worker_xla_flags(saved)
     run.seconds = time.perf_counter() - t0
     merged: list = []
     for w, (results, stats, _, cpu, stopped) in enumerate(outs):

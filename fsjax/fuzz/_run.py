@@ -620,27 +620,26 @@ class Runner:
         """Each stage through its cached ``jit(vmap(stage))`` over the batch ``[x, x2]`` (member 0
         must equal the eager result); the running batch feeds the next stage's program."""
         import jax
-        import jax.numpy as jnp
 
         batched = False
         cur = x
         if self.do_vmap:
             try:
-                cur = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), x, x2)
+                cur = _host_stack(x, x2)
                 batched = True
             except ValueError:
                 cur = x  # the two variants differ in static fields: no batch
         for i, (st, spec) in enumerate(zip(chain.stages, specs)):
             op = spec.name
             extras = tuple(a for j, a in enumerate(stage_ins[i]) if j != st.slot)
-            kn = jnp.asarray([0.5 if st.a is None else st.a, 0.5 if st.b is None else st.b], dtype=dtype)
+            kn = _knob_array(st, dtype)
             pkey = (ikey, batched, chain.stages[: i + 1])
             done = self._staged_done.get(pkey) if ikey is not None else None
             if done is not None:  # this prefix passed its stage programs before: their batch
                 self.stats["staged_prefix_hits"] += 1
                 cur = done
                 continue
-            member = jax.tree_util.tree_map(lambda v: v[0], cur) if batched else cur
+            member = _device(_host_index(cur, 0)) if batched else cur
             key = self._stage_key(st, member, extras, dtype)
             f = self._stage_fn(st, spec)
             mode = "vmap" if batched else "jit"
@@ -659,7 +658,7 @@ class Runner:
             if hit and compiled:
                 raise _Fail("RECOMPILE", i, op, mode, "a cached stage program called again with the same shapes "
                             "compiled again")
-            got = jax.tree_util.tree_map(lambda v: v[0], y) if batched else y
+            got = _host_index(y, 0) if batched else y
             nans: list = []
             d = _differ(got, eager_outs[i], dtype, nans)
             if nans and not d:
@@ -672,7 +671,7 @@ class Runner:
             if not hit:
                 # a new program: called again with the same shapes (the batch reversed) it must not
                 # compile, and a member's answer must not depend on its position
-                rev = jax.block_until_ready(jax.tree_util.tree_map(lambda v: v[::-1], cur)) if batched else None
+                rev = jax.block_until_ready(_device(_host_index(cur, slice(None, None, -1)))) if batched else None
                 c0 = _COMPILES["n"]
                 if batched:
                     y2 = jax.block_until_ready(self._vprog[key](rev, extras, kn))
@@ -682,7 +681,7 @@ class Runner:
                     raise _Fail("RECOMPILE", i, op, mode, "a compiled stage program called again with the same shapes "
                                 "compiled again")
                 if batched:
-                    d = _differ(jax.tree_util.tree_map(lambda v: v[1], y2), got, dtype)
+                    d = _differ(_host_index(y2, 1), got, dtype)
                     if d:
                         raise _Fail("MISMATCH", i, op, "vmap", "batch member depends on its position: " + d.split(" (")[0],
                                     d)
@@ -722,9 +721,9 @@ class Runner:
         import jax.numpy as jnp
         import numpy as np
 
-        terms = _output_weights(eager_outs[-1])
-        total = sum(float(jnp.sum(jnp.where(ok, leaf, 0.0) * w)) for leaf, w, ok in terms)
-        ct = [jnp.where(ok, w, 0.0) for _, w, ok in terms]
+        terms = _output_weights(eager_outs[-1], np)   # on the host: nothing compiles
+        total = sum(float(np.sum(np.where(ok, leaf, 0.0) * w)) for leaf, w, ok in terms)
+        ct = _device([np.where(ok, w, 0).astype(w.dtype) for _, w, ok in terms])
         if not np.isfinite(total):
             return  # forward not finite: NONFINITE's business
         for i in range(len(chain.stages) - 1, -1, -1):
@@ -732,7 +731,7 @@ class Runner:
             ins = stage_ins[i]
             xin = ins[st.slot]
             extras = tuple(a for j, a in enumerate(ins) if j != st.slot)
-            kn = jnp.asarray([0.5 if st.a is None else st.a, 0.5 if st.b is None else st.b], dtype=dtype)
+            kn = _knob_array(st, dtype)
             leaves, tdef = jax.tree_util.tree_flatten(xin)
             fl = tuple(k for k, v in enumerate(leaves) if jnp.issubdtype(jnp.result_type(v), jnp.inexact))
             xf = [leaves[k] for k in fl]
@@ -774,7 +773,7 @@ class Runner:
         if xb is None:
             self._jit_way(chain, f, x, x2, knobs, eager_outs, dtype, out)
             return
-        vf = jax.jit(jax.vmap(f, in_axes=(0, None)))
+        vf = _jit_whole(jax.vmap(f, in_axes=(0, None)))
         try:
             yb = jax.block_until_ready(vf(xb, knobs))
         except Exception as e:  # noqa: BLE001 - classified
@@ -809,7 +808,7 @@ class Runner:
         """Plain ``jit(chain)``: raises a ``_Fail`` for a broken jit way; True when jit is sound."""
         import jax
 
-        jf = jax.jit(f)
+        jf = _jit_whole(f)
         try:
             ys = jax.block_until_ready(jf(x, knobs))
         except Exception as e:  # noqa: BLE001 - classified
@@ -876,7 +875,7 @@ class Runner:
 
         xf = [leaves[i] for i in fl]
         try:
-            val, (gx, gk) = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(xf, knobs)
+            val, (gx, gk) = _jit_whole(jax.value_and_grad(loss, argnums=(0, 1)))(xf, knobs)
         except Exception as e:  # noqa: BLE001 - classified
             self._traced_error(e, chain, "grad", Outcome("ok"))
             return None
@@ -892,34 +891,100 @@ class Runner:
 STAGE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
+# the chain compiled whole compiles at XLA's default backend level (3), explicitly: worker processes
+# set level 0 for every other program (fsjax.fuzz._report.WORKER_XLA_FLAGS), and these chains are
+# the fuzzer's test of the code XLA optimises fully
+WHOLE_COMPILER_OPTIONS = {"xla_backend_optimization_level": 3}
+
+
 def _jit(f):
     import jax
 
     return jax.jit(f, compiler_options=STAGE_COMPILER_OPTIONS)
 
 
-def _output_weights(y) -> list:
+def _jit_whole(f):
+    import jax
+
+    return jax.jit(f, compiler_options=WHOLE_COMPILER_OPTIONS)
+
+
+def _output_weights(y, xp=None) -> list:
     """The random-weighted scalar that ``grad`` differentiates, as ``(leaf, w, ok)`` per inexact
-    output leaf: ``w`` standard-normal weights (PRNG key 7 folded with the leaf's index among
-    all leaves), ``ok`` the elements that count (finite, and marked by the output's ``valid``
-    mask where it applies). The scalar is ``sum(where(ok, leaf, 0) * w)``, the cotangent
-    ``where(ok, w, 0)``. One definition for the stage-by-stage grad and the chain compiled
-    whole (works traced or concrete)."""
+    output leaf: ``w`` standard-normal weights (numpy's generator seeded ``[7, j]``, ``j`` the
+    leaf's index among all leaves; a host constant, so nothing compiles for it), ``ok`` the
+    elements that count (finite, and marked by the output's ``valid`` mask where it applies).
+    The scalar is ``sum(where(ok, leaf, 0) * w)``, the cotangent ``where(ok, w, 0)``. One
+    definition for the stage-by-stage grad (``xp=numpy``: computed on the host) and the chain
+    compiled whole (``jax.numpy``, traced)."""
     import jax
     import jax.numpy as jnp
+    import numpy as np
 
-    key = jax.random.PRNGKey(7)
+    xp = jnp if xp is None else xp
     valid = getattr(y, "valid", None)
     out = []
     for j, leaf in enumerate(jax.tree_util.tree_leaves(y)):
         if not jnp.issubdtype(jnp.result_type(leaf), jnp.inexact):
             continue
-        w = jax.random.normal(jax.random.fold_in(key, j), jnp.shape(leaf), dtype=jnp.result_type(leaf))
-        ok = jnp.isfinite(leaf)
+        dt = jnp.result_type(leaf)
+        w = np.random.default_rng([7, j]).standard_normal(np.shape(leaf)).astype(dt)
+        if xp is np:
+            leaf = np.asarray(leaf)
+        ok = xp.isfinite(leaf)
         if valid is not None and valid.dtype == jnp.bool_ and valid.ndim and leaf.shape[: valid.ndim] == valid.shape:
-            ok = ok & valid.reshape(valid.shape + (1,) * (leaf.ndim - valid.ndim))
+            ok = ok & xp.asarray(valid).reshape(valid.shape + (1,) * (leaf.ndim - valid.ndim))
         out.append((leaf, w, ok))
     return out
+
+
+def _host_index(tree, index):
+    """``v[index]`` for every leaf, on the host (numpy): the fuzzer's own slicing compiled a program
+    per shape as eager dispatch. A weak-typed leaf keeps jax's indexing, so the stage programs'
+    keys and input types stay those of the jax arrays. A result fed to a compiled program goes
+    through :func:`_device` first."""
+    import jax
+    import numpy as np
+
+    return jax.tree_util.tree_map(lambda v: v[index] if getattr(v, "weak_type", False) else np.asarray(v)[index],
+                                  tree)
+
+
+def _device(tree):
+    """Host (numpy) leaves as device arrays (``jax.device_put``: nothing compiles). A compiled
+    program is always called with device arrays: jit's fast path keys its cache on the argument's
+    type too, so a program first called with a numpy array and later with a device array (a
+    stage's output) leaves the fast path, and once JAX's bounded trace caches (2048-4096 entries,
+    the eager primitives included) have dropped its entry, it traces and compiles again -- a false
+    RECOMPILE (watershed_split, the full run of this branch)."""
+    import jax
+    import numpy as np
+
+    return jax.tree_util.tree_map(lambda v: jax.device_put(v) if isinstance(v, (np.ndarray, np.generic)) else v,
+                                  tree)
+
+
+def _host_stack(x, x2):
+    """The batch ``[x, x2]`` of two pool inputs, stacked on the host (see :func:`_host_index`), as
+    device arrays (:func:`_device`)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    def stack(a, b):
+        if getattr(a, "weak_type", False) or getattr(b, "weak_type", False):
+            return jnp.stack([a, b])
+        return np.stack([np.asarray(a), np.asarray(b)])
+
+    return _device(jax.tree_util.tree_map(stack, x, x2))
+
+
+def _knob_array(st, dtype: str):
+    """A stage's two knob values (``None`` -> 0.5, never read) as the stage programs' argument (a
+    device array, :func:`_device`)."""
+    import numpy as np
+
+    return _device(np.asarray([0.5 if st.a is None else st.a, 0.5 if st.b is None else st.b], dtype=dtype))
 
 
 def _all_finite(tree) -> bool:

@@ -424,7 +424,7 @@ def test_generated_chains_type_correct_and_report(planted, tmp_path):
 # the bounded fuzz CI runs: a fixed seed over the whole registry
 # ---------------------------------------------------------------------------
 
-BOUNDED_CHAINS = 32
+BOUNDED_CHAINS = 200
 BOUNDED_LENGTH = 4
 BOUNDED_SEED = 2026
 BOUNDED_COVERAGE = 0.05   # the coverage phase draws 5 % of the ops (12 of ~230, drawn from the seed) first
@@ -435,11 +435,12 @@ def test_bounded_fuzz_whole_registry():
     """A fixed-seed fuzz over the registry fails on any blocking class (SUSPECT, TYPEMISS,
     MISMATCH, SILENT_OVERFLOW, GRADNAN).
 
-    Sized for the suite (docs/fuzz.md): a cold coverage phase costs ~4 s of CPU per chain, so
-    the run covers a seeded 5 % of the ops first (``coverage_share``) and then repeats what it
-    drew, reaching other ops, inputs and knob values at the generator's ``NEW_COMBO_RATE``:
-    32 chains of length <= 4 (16 before, all in the coverage phase). Chains whose draw says so
-    also run compiled whole. Each failure's replayable chain is in the assertion message.
+    Sized for the suite (docs/fuzz.md): a cold coverage phase costs ~3-4 s of CPU per chain, so
+    the run covers a seeded 5 % of the ops first (``coverage_share``, 10 chains) and then repeats
+    what it drew, reaching other ops, inputs and knob values at the generator's
+    ``NEW_COMBO_RATE``: 200 chains of length <= 4 (32 before) cost 96 s of CPU cold (292 s of
+    wall time at load 7-12; 96 chains: 64 s). Chains whose draw says so also run compiled
+    whole. Each failure's replayable chain is in the assertion message.
     """
     import random
 
@@ -481,3 +482,68 @@ def test_exact_repeats_are_drawn_again(monkeypatch):
     monkeypatch.setattr(_gen, "REPEAT_REDRAWS", 1)   # the null: no second draw
     distinct0, left0 = draw(600)
     assert distinct0 < 570 and left0 == 600 - distinct0, (distinct0, left0)
+
+
+def test_worker_xla_flags_add_level_0_and_keep_an_explicit_level():
+    """Worker processes compile at XLA's backend level 0 (``WORKER_XLA_FLAGS``, set in their
+    environment by the parent); the parent's other flags are kept, and a level the user set
+    explicitly wins. The chain compiled whole asks for XLA's default level explicitly."""
+    from fsjax.fuzz._report import WORKER_XLA_FLAGS, _worker_xla_flags
+    from fsjax.fuzz._run import WHOLE_COMPILER_OPTIONS
+
+    assert _worker_xla_flags(None) == WORKER_XLA_FLAGS == "--xla_backend_optimization_level=0"
+    assert _worker_xla_flags("--xla_dump_to=/tmp/d") == "--xla_dump_to=/tmp/d --xla_backend_optimization_level=0"
+    assert _worker_xla_flags("--xla_backend_optimization_level=2") == "--xla_backend_optimization_level=2"
+    assert WHOLE_COMPILER_OPTIONS == {"xla_backend_optimization_level": 3}
+
+
+@pytest.mark.slow
+def test_planted_bugs_caught_under_the_worker_xla_flags():
+    """The planted bugs are caught in their classes in a process whose every program compiles at
+    the workers' level 0 (the eager way's primitives and op programs included)."""
+    import os
+    import subprocess
+    import sys
+
+    from fsjax.fuzz._report import _worker_xla_flags
+
+    env = {**os.environ, "XLA_FLAGS": _worker_xla_flags(os.environ.get("XLA_FLAGS"))}
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
+                        f"{__file__}::test_planted_bug_caught_in_its_class",
+                        f"{__file__}::test_whole_chain_way_catches_the_planted_bugs_too"],
+                       env=env, capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-2000:]
+    assert "8 passed" in r.stdout, r.stdout[-2000:]
+
+
+def test_stage_programs_called_with_device_arrays_no_false_recompile(planted, monkeypatch):
+    """This branch's full run reported RECOMPILE watershed_split: its program was first called
+    with a batch stacked on the host (numpy) and, 29 chains later, with a stage's output (a
+    device array); jit's fast path keys on the argument's type, and JAX's bounded trace caches
+    had dropped the program's entry by then, so it traced and compiled again. Stage programs
+    are now always called with device arrays. Eviction is simulated by clearing JAX's Python-
+    level caches (its compiled-executable fast path kept); the null (host arrays passed as they
+    are) reports the false RECOMPILE."""
+    from jax._src import util as jax_util
+
+    from fsjax.fuzz import _run
+
+    _, specs = planted
+
+    def chain(*knobs):
+        return fz.Chain.from_json({"input": {"sort": "Image", "kind": "scene", "size": [6, 7], "dtype": "float64",
+                                             "variant": 0},
+                                   "stages": [{"op": "gaussian", "a": a, "b": None, "params": {}, "slot": 0}
+                                              for a in knobs]})
+
+    def second_chain_outcome():
+        runner = fz.Runner(specs, grad=False)
+        assert runner.run(chain(0.2)).status == "ok"
+        jax_util.clear_all_caches()   # as JAX's LRU caches drop the entry after ~2000 other programs
+        return runner.run(chain(0.2, 0.4))   # stage 2: the same program, fed a device array
+
+    o = second_chain_outcome()
+    assert o.status == "ok", o
+    monkeypatch.setattr(_run, "_device", lambda tree: tree)   # the null: numpy batches as they are
+    o = second_chain_outcome()
+    assert (o.status, o.cls, o.stage) == ("failed", "RECOMPILE", 1), o
