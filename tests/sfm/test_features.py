@@ -91,7 +91,14 @@ def test_traced_path_matches_eager_bucketed_path(pair):
     v = np.asarray(eager.valid)
     assert 20 < v.sum() <= 512  # the bucket (512 rows) is smaller than the capacity (1024)
     np.testing.assert_array_equal(v, np.asarray(traced.valid))
-    for name in ("uv", "scale", "angle_rad", "response", "descriptors"):
-        np.testing.assert_allclose(np.asarray(getattr(eager, name)), np.asarray(getattr(traced, name)), atol=1e-5,
-                                   err_msg=name)
+    # float32, two compiled programs. Bit-identical under XLA:CPU's default emitters; under the
+    # older loop emitters the suite uses (tests/conftest.py) the sub-pixel step (a quadratic fit
+    # to differences of close Gaussian levels) turns rounding into small shifts, measured: uv
+    # 8.4e-5 px, scale 1.8e-5 relative, descriptors 9.6e-6, angle 6e-7 rad, response 3e-8.
+    # Tolerances ~3x those (uv 100x below SIFT's localisation noise):
+    tol = {"uv": dict(atol=2e-4), "scale": dict(atol=1e-5, rtol=5e-5), "angle_rad": dict(atol=1e-5),
+           "response": dict(atol=1e-6), "descriptors": dict(atol=3e-5)}
+    for name, kw in tol.items():
+        np.testing.assert_allclose(np.asarray(getattr(eager, name)), np.asarray(getattr(traced, name)), err_msg=name,
+                                   **kw)
     assert np.asarray(eager.descriptors)[~v].sum() == 0 and eager.descriptors.shape == (1024, 128)
