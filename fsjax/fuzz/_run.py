@@ -451,7 +451,9 @@ class Runner:
 
     def _documented_neg_inf(self, op: str, out, params) -> bool:
         """True when ``out``'s only non-finite values are ones the op documents: NaN for an op in
-        ``DOCUMENTED_NAN``, -inf for the parameter values in ``DOCUMENTED_NEG_INF``."""
+        ``DOCUMENTED_NAN``, +-inf for one in ``DOCUMENTED_OVERFLOW``, one infinity over the whole
+        output for one in ``DOCUMENTED_ALL_INF``, -inf for the parameter values in
+        ``DOCUMENTED_NEG_INF``."""
         import numpy as np
 
         if params is None:
@@ -460,6 +462,9 @@ class Runner:
             return all(not (fl and np.any(np.isinf(a))) for a, _, fl, _ in _leaves_with_mask(out))
         if op in DOCUMENTED_OVERFLOW:   # +-inf (not NaN) where the op documents overflow
             return all(not (fl and np.any(np.isnan(a))) for a, _, fl, _ in _leaves_with_mask(out))
+        if op in DOCUMENTED_ALL_INF:   # one infinity over the whole output (an empty class)
+            return all(not fl or (a.size > 0 and bool(np.all(np.isinf(a))) and bool(np.all(a == a.flat[0])))
+                       for a, _, fl, _ in _leaves_with_mask(out))
         rule = DOCUMENTED_NEG_INF.get(op)
         if rule is None:
             return False
@@ -1042,6 +1047,11 @@ DOCUMENTED_NEG_INF = {
 DOCUMENTED_NAN = frozenset({
     "sobel_dir",   # "NaN where the gradient is zero up to rounding (a flat area); mask it with sobel_amp"
     "absolute_phase",   # "Negative codes (-1: undecidable; any code rounding below 0) give NaN"
+})
+# ops that document one infinity over the whole output when one class of voxels is empty; a NaN,
+# or an infinity beside finite values, still fails
+DOCUMENTED_ALL_INF = frozenset({
+    "volume_to_sdf",   # "+inf everywhere when there is no foreground voxel, -inf when there is no background voxel"
 })
 # ops whose Image output documents +-inf where the result overflows the dtype (IEEE overflow of an
 # exponential, on input far outside [0, 1]); only infinities are explained, a NaN still fails

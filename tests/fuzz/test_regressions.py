@@ -387,3 +387,36 @@ def test_decorrelation_stretch_float32_rank2_repeated():
         ga = float(jax.grad(loss)(t0))
         fd = float((loss(t0 + 1e-7) - loss(t0 - 1e-7)) / 2e-7)
         assert np.isfinite(ga) and abs(ga - fd) <= 1e-3 * max(1.0, abs(fd)), (t0, ga, fd)
+
+
+# volume_to_sdf documents "+inf everywhere when there is no foreground voxel"; branch fuzz19's full
+# run (seed 0) reported it NONFINITE after a Gaussian left no voxel above the level 0.5
+# (`Volume[scene 16x16 float64] -> gaussian3d@0.8 -> volume_to_sdf`). The fuzzer now reads that
+# rule (fsjax.fuzz._run.DOCUMENTED_ALL_INF): one infinity over the whole output; a NaN, or an
+# infinity beside finite distances, would still fail.
+SDF_EMPTY = {"input": {"dtype": "float64", "kind": "scene", "size": [16, 16], "sort": "Volume", "variant": 0},
+             "stages": [{"op": "gaussian3d", "a": 0.8, "b": None, "params": {}, "slot": 0},
+                        {"op": "volume_to_sdf", "a": None, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_volume_to_sdf_without_foreground_is_documented_inf(monkeypatch):
+    import numpy as np
+
+    from fsjax.fuzz import _run
+
+    specs = [fsjax.get_op("gaussian3d"), fsjax.get_op("volume_to_sdf")]
+    c = fz.Chain.from_json(SDF_EMPTY)
+    assert fz.Runner(specs, grad=False, vmap=False).run(c).status == "ok"
+    v = np.asarray(fsjax.ops.volume_to_sdf(fsjax.Volume(np.zeros((4, 5, 6)))).data)
+    assert np.all(np.isposinf(v))   # the documented +inf: no foreground voxel
+    w = np.asarray(fsjax.ops.volume_to_sdf(fsjax.Volume(np.ones((4, 5, 6)))).data)
+    assert np.all(np.isneginf(w))   # and -inf: no background voxel
+    runner = fz.Runner(specs, grad=False, vmap=False)
+    half = np.full((4, 5, 6), np.inf)
+    half[0, 0, 0] = 1.0
+    assert not runner._documented_neg_inf("volume_to_sdf", fsjax.Volume(half), {})   # inf beside a finite value
+    nan = np.full((4, 5, 6), np.nan)
+    assert not runner._documented_neg_inf("volume_to_sdf", fsjax.Volume(nan), {})
+    monkeypatch.setattr(_run, "DOCUMENTED_ALL_INF", frozenset())   # the null: without the rule
+    o = fz.Runner(specs, grad=False, vmap=False).run(c)
+    assert (o.status, o.cls) == ("failed", "NONFINITE"), o
