@@ -12,7 +12,10 @@ Tolerances (stated, for MISMATCH): a floating leaf agrees when
 float32; NaN equals NaN; slots a ``valid`` mask marks unused are ignored); a bool or
 integer leaf agrees when at most 1 % of its elements differ (a float that rounds across a
 threshold flips a pixel), and a 0-d one must be equal; a solver's ``iterations`` is not
-compared (a batched solve may take a step more or less, with the same answer). A value that is NaN under the trace
+compared (a batched solve may take a step more or less, with the same answer); a record that
+both ways refuse (its 0-d ``valid`` False in both) is compared on ``valid`` and ``reason`` only:
+its other fields describe a failed solve (a non-converged iterate's score depends on the
+path). A value that is NaN under the trace
 where the eager call is finite is not a MISMATCH: a traced way may fail closed where an eager
 call sizes its buffers from the data (``render_depth``); the traced output is then checked
 as NONFINITE (explained only by a flag or a sort's documented NaN) and later stages, which
@@ -184,6 +187,20 @@ def _nbytes(tree) -> int:
     return sum(int(getattr(v, "nbytes", 0)) for v in jax.tree_util.tree_leaves(tree))
 
 
+def _both_refused(x, y) -> bool:
+    """True when both records carry a 0-d boolean ``valid`` that is False (both ways refuse)."""
+    import numpy as np
+
+    def refused(r):
+        v = getattr(r, "valid", None)
+        if v is None:
+            return False
+        v = np.asarray(v)
+        return v.ndim == 0 and v.dtype == np.bool_ and not bool(v)
+
+    return refused(x) and refused(y)
+
+
 def _differ(x, y, dtype: str, nan_only: list | None = None) -> str | None:
     """``None`` when trees agree within the stated tolerance, else a short description.
 
@@ -205,6 +222,11 @@ def _differ(x, y, dtype: str, nan_only: list | None = None) -> str | None:
     tx, ty = jax.tree_util.tree_structure(x), jax.tree_util.tree_structure(y)
     if tx != ty:
         return "tree structure or static fields differ"
+    if _both_refused(x, y):
+        rx, ry = getattr(x, "reason", None), getattr(y, "reason", None)
+        if rx is not None and ry is not None and not np.array_equal(np.asarray(rx), np.asarray(ry)):
+            return f"reason: {np.asarray(rx)} vs {np.asarray(ry)} (both refused)"
+        return None
     rtol = RTOL.get(dtype, 2e-3)
     for (a, m, fl, name), (b, _, _, _) in zip(_leaves_with_mask(x), _leaves_with_mask(y)):
         if a.shape != b.shape:
