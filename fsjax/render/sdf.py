@@ -474,7 +474,9 @@ def disc_visible_fraction(x):
         [0.0, 0.5, 0.804499, 1.0]
     """
     x = jnp.clip(jnp.asarray(x), -1.0, 1.0)
-    return 0.5 + (x * jnp.sqrt(jnp.maximum(1.0 - x * x, 0.0)) + jnp.arcsin(x)) / math.pi
+    # clipped to [0, 1]: at x = -1 the rounding of asin(-1) / pi against 1/2 may leave -1e-17 (it
+    # did under XLA:CPU's older loop emitters), a fraction below 0
+    return jnp.clip(0.5 + (x * jnp.sqrt(jnp.maximum(1.0 - x * x, 0.0)) + jnp.arcsin(x)) / math.pi, 0.0, 1.0)
 
 
 def _soft_shadow(sdf, p, n, light, sin_rho, t_start, t_max, n_steps, min_step):
