@@ -9,10 +9,9 @@ without the option, so the library's own decoration does not decide both columns
 process CPU seconds of ``lower(...).compile()``; run time the median of 9 interleaved calls;
 "max |diff|" compares every output leaf of the two programs (NaN where both give NaN).
 
-The library does not set the option on its own programs: ``jax.jit(..., compiler_options=...)``
-is refused on a jit nested in another jit (ValueError in jax 0.10), and these fits are called
-inside users' jits; a top-level-only dispatch would be needed. The test suite sets the flag
-globally (tests/conftest.py).
+The library sets the option on these fits when they are called at top level
+(``fsjax._linalg.jit_fast_compile``: ``jax.jit(..., compiler_options=...)`` is refused on a jit
+nested in another jit, so under a user's jit the enclosing program's options apply).
 """
 
 import time
@@ -21,10 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from fsjax._linalg import FAST_COMPILE
 from fsjax.fit import primitives3d as P
 from fsjax.ops.measure2d import _fit2d as F
-
-FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 
 
 def _cases():

@@ -66,3 +66,28 @@ def test_solvers_match_lapack():
     # differentiable: d/dy of the least-squares solution is pinv(m), finite and non-zero
     g = jax.jacobian(lambda yy: lstsq_small(jnp.asarray(m), yy))(jnp.asarray(y))
     assert np.abs(np.asarray(g) - np.linalg.pinv(m)).max() < 1e-12 and np.abs(np.asarray(g)).max() > 0
+
+
+def test_jit_fast_compile_options_only_at_top_level():
+    """The fits' compile option (``FAST_COMPILE``) goes only to top-level calls: jax refuses
+    ``compiler_options`` on a jit nested in another jit (the null below), and the fits are called
+    inside users' jit, vmap and grad. Same values every way."""
+    from fsjax._linalg import FAST_COMPILE, jit_fast_compile
+
+    def f(x, *, p):
+        return jnp.sin(x) * p + jnp.sum(x**2)
+
+    g = jit_fast_compile(f, static_argnames=("p",))
+    x = jnp.linspace(0.0, 1.0, 7)
+    ref = np.sin(np.linspace(0.0, 1.0, 7)) * 3 + np.sum(np.linspace(0.0, 1.0, 7) ** 2)
+    np.testing.assert_allclose(g(x, p=3), ref, rtol=1e-12)   # top level: the fast program
+    assert g.fast._cache_size() == 1 and g.plain._cache_size() == 0
+    np.testing.assert_allclose(jax.jit(lambda y: g(y, p=3))(x), ref, rtol=1e-12)   # nested: traced plain
+    np.testing.assert_allclose(jax.vmap(lambda y: g(y, p=3))(jnp.stack([x, x]))[1], ref, rtol=1e-12)
+    gr = jax.grad(lambda y: jnp.sum(g(y, p=3)))(x)
+    np.testing.assert_allclose(gr, 3 * np.cos(np.linspace(0.0, 1.0, 7)) + 2 * 7 * np.linspace(0.0, 1.0, 7), rtol=1e-12)
+    assert float(jnp.max(jnp.abs(gr))) > 0
+    assert g.__wrapped__ is f and g.__name__ == "f"
+    bare = jax.jit(f, static_argnames=("p",), compiler_options=FAST_COMPILE)
+    with pytest.raises(ValueError, match="compiler_options"):   # the null: options on a nested jit
+        jax.jit(lambda y: bare(y, p=3))(x)

@@ -39,8 +39,6 @@ noise (``noise`` given, a chi-square bound) or small beside the points' spread
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -48,7 +46,14 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_positive
-from .._linalg import SmallQR, eigh_small, levenberg_marquardt, solve_small, solve_spd_eig
+from .._linalg import (
+    SmallQR,
+    eigh_small,
+    jit_fast_compile,
+    levenberg_marquardt,
+    solve_small,
+    solve_spd_eig,
+)
 from ..types import NamedParams
 from ..types.results import FitResult, deprecated_name, reason_code, renamed
 
@@ -182,7 +187,7 @@ def _lm(fn, y0, args, max_steps):
 # ---------------------------------------------------------------------------
 
 
-@jax.jit
+@jit_fast_compile
 def fit_plane(xyz, valid=None) -> Fit3D:
     """Total-least-squares plane ``n . x = d`` (PCA: ``n`` = smallest-eigenvalue eigenvector).
 
@@ -206,7 +211,7 @@ def fit_plane(xyz, valid=None) -> Fit3D:
     return _finish("plane", ("nx", "ny", "nz", "d"), p + 0.0, x @ n - p[3], v, ok)
 
 
-@jax.jit
+@jit_fast_compile
 def fit_line3d(xyz, valid=None) -> Fit3D:
     """Total-least-squares 3-D line through the centroid along the largest principal axis.
 
@@ -257,7 +262,7 @@ def _sphere_res(y, args):
     return w * (_nrm(x - y[:3]) - y[3])
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps",))
+@jit_fast_compile(static_argnames=("max_steps",))
 def fit_sphere(xyz, valid=None, *, max_steps: int = 100) -> Fit3D:
     """Sphere: algebraic (Kasa-style) start, then geometric Levenberg-Marquardt on ``|x - c| - r``.
 
@@ -284,7 +289,7 @@ def _circle2d_res(y, args):
     return w * (_nrm(u - y[:2]) - y[2])
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps",))
+@jit_fast_compile(static_argnames=("max_steps",))
 def fit_circle3d(xyz, valid=None, *, max_steps: int = 100) -> Fit3D:
     """3-D circle: TLS plane, then a geometric circle fit of the points projected into it.
 
@@ -377,7 +382,7 @@ def _local_normals(x, v, idx):
     return eigh_small(jnp.einsum("nki,nkj->nij", d, d) / cs[..., None])[1][..., 0]
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps",))
+@jit_fast_compile(static_argnames=("max_steps",))
 def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
     """Cylinder: multi-start geometric Levenberg-Marquardt, best of four axis starts.
 
@@ -428,7 +433,7 @@ def fit_cylinder(xyz, valid=None, *, max_steps: int = 200) -> Fit3D:
                    res[best], v, ok[best] & (jnp.sum(v) >= 5), steps[best], supported=curved)
 
 
-@jax.jit
+@jit_fast_compile
 def fit_quadric(xyz, valid=None) -> Fit3D:
     """Quadric surface patch: height ``h = a u^2 + b uv + c v^2 + d u + e v + f`` over the PCA plane.
 
@@ -522,7 +527,7 @@ class ModelSelection(eqx.Module):
         return self.names[c] if c >= 0 else "none"
 
 
-@functools.partial(jax.jit, static_argnames=("criterion",))
+@jit_fast_compile(static_argnames=("criterion",))
 def select_model(xyz, valid=None, *, criterion: str = "bic", noise=None, max_rel_rms=0.1) -> ModelSelection:
     """Choose among plane, sphere, cylinder and quadric by AIC or BIC (see the module docstring).
 

@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import optimistix as optx
 
 from ..._checks import check_positive, check_static_int
-from ..._linalg import levenberg_marquardt
+from ..._linalg import jit_fast_compile, levenberg_marquardt
 from ...registry import LinKnob, poison, register
 from ...types import Contour, Fit, is_concrete
 from ...types.results import reason_code
@@ -270,7 +270,7 @@ def _line_resid(params, pts):
     return (pts[:, 0] - params[0]) * jnp.cos(th) + (pts[:, 1] - params[1]) * jnp.sin(th)
 
 
-@functools.partial(jax.jit, static_argnames=("robust", "rounds"))
+@jit_fast_compile(static_argnames=("robust", "rounds"))
 def _fit_line_core(pts, valid, k, *, robust, rounds):
     def fit(p, w):
         params, ok, it, _ = _line_fit(p, w)
@@ -395,7 +395,7 @@ def _circle_resid(params, pts):
     return _safe_sqrt((pts[:, 0] - params[0]) ** 2 + (pts[:, 1] - params[1]) ** 2) - params[2]
 
 
-@functools.partial(jax.jit, static_argnames=("robust", "rounds", "refine", "max_steps"))
+@jit_fast_compile(static_argnames=("robust", "rounds", "refine", "max_steps"))
 def _fit_circle_core(pts, valid, k, max_rel_rms, max_rel_se, *, robust, rounds, refine, max_steps):
     fit = functools.partial(_circle_fit, refine=refine, max_steps=max_steps)
     params, ok, it, used = _robust_fit(fit, _circle_resid, pts, valid, robust=robust, k=k, rounds=rounds,
@@ -640,7 +640,7 @@ def _ellipse_resid(params, pts):
     return _ellipse_dist(y, pts[:, 1], pts[:, 0])
 
 
-@functools.partial(jax.jit, static_argnames=("robust", "rounds", "refine", "max_steps"))
+@jit_fast_compile(static_argnames=("robust", "rounds", "refine", "max_steps"))
 def _fit_ellipse_core(pts, valid, k, max_rel_rms, max_rel_se, *, robust, rounds, refine, max_steps):
     fit = functools.partial(_ellipse_fit, refine=refine, max_steps=max_steps)
     params, ok, it, used = _robust_fit(fit, _ellipse_resid, pts, valid, robust=robust, k=k, rounds=rounds,
