@@ -52,7 +52,9 @@ __all__ = ["eigh_small", "solve_spd_eig", "solve_small", "lstsq_small", "SmallQR
 # fit_circle 2.43 -> 1.86, fit_cylinder 5.16 -> 2.91, select_model 8.18 -> 5.91; run times equal
 # within noise; results bit-identical or within float32 rounding. Not used on image filters,
 # where the default emitters run up to 3x faster (a 1024^2 Gaussian 2.35 vs 6.67 ms).
-FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+# The optimisation level is pinned to XLA's default (2): the older emitters at level 0 (which a
+# user or a test suite may set in XLA_FLAGS) miscompile (tools/repro_xla_emitters_level0.py).
+FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 2}
 
 
 def jit_fast_compile(fun=None, /, **jit_kwargs):

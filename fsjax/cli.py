@@ -35,15 +35,16 @@ overrides it, ``FSJAX_CACHE_DIR=off`` disables it), so a second run skips compil
 ``fuzz`` does too for a run (not a replay), in ``--compile-cache DIR`` if given, and its
 report says whether the cache was warm or cold at the start.
 
-``tour`` and ``fuzz`` compile far more than they run, so they ask XLA:CPU for its older loop
-emitters (``XLA_FLAGS=--xla_cpu_use_fusion_emitters=false``, added to the environment before
-JAX starts its backend, unless ``XLA_FLAGS`` already names that flag): the quick tour on a
-cold cache took 169 s of CPU instead of 258 s and peaked at 1.22 GB instead of 1.71 GB, with
-the same report (every figure equal; only timings differ). Run time moves both ways under
-that flag (a 1024 x 1024 Gaussian 2.8x slower, an opening 2x faster;
-``benchmarks/bench_fast_compile.py`` for the fits), so the library itself and the other
-commands keep XLA's default; ``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true fsjax tour``
-restores it.
+``tour`` compiles far more than it runs, so it asks XLA:CPU for its older loop emitters
+(``XLA_FLAGS=--xla_cpu_use_fusion_emitters=false``, added to the environment before JAX starts its
+backend, unless ``XLA_FLAGS`` already names that flag): the quick tour on a cold cache took 169 s
+of CPU instead of 258 s and peaked at 1.22 GB instead of 1.71 GB, with the same report (every
+figure equal; only timings differ). Not when ``XLA_FLAGS`` sets an optimisation level: the older
+emitters at level 0 miscompile (``tools/repro_xla_emitters_level0.py``). Run time moves both ways
+under the flag (a 1024 x 1024 Gaussian 2.8x slower, an opening 2x faster), so the library (but
+its small fits, ``fsjax._linalg.jit_fast_compile``) and the other commands keep XLA's default;
+``fuzz`` too, whose stage programs compile at level 0. ``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true
+fsjax tour`` restores the default.
 """
 
 from __future__ import annotations
@@ -312,13 +313,14 @@ def _cmd_splat(args) -> int:
 
 
 def _prefer_fast_compile() -> None:
-    """XLA:CPU's older loop emitters for a compile-dominated command (module docstring).
+    """XLA:CPU's older loop emitters for the compile-dominated tour (module docstring).
 
     Takes effect only if JAX's backend has not started in this process (the CLI imports no
-    JAX before this); a flag the user set in ``XLA_FLAGS`` is kept as given.
+    JAX before this); nothing is added when ``XLA_FLAGS`` names the flag or sets an
+    optimisation level (the older emitters at level 0 miscompile).
     """
     flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_use_fusion_emitters" not in flags:
+    if "xla_cpu_use_fusion_emitters" not in flags and "xla_backend_optimization_level" not in flags:
         os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_use_fusion_emitters=false").strip()
 
 
@@ -405,7 +407,7 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_splat)
 
     args = parser.parse_args(argv)
-    if args.cmd in ("tour", "fuzz"):
+    if args.cmd == "tour":
         _prefer_fast_compile()
     if args.cmd in ("tour", "run", "evolve", "sfm", "splat"):
         # compiled programs persist across runs (FSJAX_CACHE_DIR overrides, =off disables)

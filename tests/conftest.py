@@ -29,15 +29,10 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 # Set before jax initialises its backend; an XLA_FLAGS given by the caller is kept.
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
-# XLA:CPU's newer MLIR fusion emitters cost compile time; its older loop emitters compile the
-# same HLO about twice as fast. Measured (CPU seconds, one process each, loaded machine):
-# fit_ellipse's core program at level 0 4.4-5.6 s -> 2.2-2.4 s, canny 0.6 -> 0.25-0.3 s; every
-# registered op on its 64 x 64 standard input in float32: 433 of 444 output arrays bit-identical,
-# the rest within 9e-7 relative (rounding order); 15 run-time workloads at 1024^2 identical.
-# Run time moves both ways (a Gaussian 2.8x slower, an opening 2x faster), so the library keeps
-# XLA's default; the suite, which compiles far more than it runs, takes the faster compile.
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
+# Not set here: XLA:CPU's older loop emitters (--xla_cpu_use_fusion_emitters=false), which compile
+# 1.5-2x faster. Together with level 0 above they miscompile: measure_pos on a three-edge profile
+# returns five edges (tools/repro_xla_emitters_level0.py; each flag alone gives three), and ICP
+# stops converging (docs/benchmarks_icp.md). A clean-clone run with both (stop 34) failed 8 tests.
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

@@ -150,21 +150,22 @@ def test_tour_list_and_one_section_by_name(tmp_path, capsys):
     assert "unknown section" in capsys.readouterr().err
 
 
-def test_tour_and_fuzz_ask_for_the_faster_compiling_emitters(monkeypatch, capsys):
-    """``tour`` and ``fuzz`` add ``--xla_cpu_use_fusion_emitters=false`` to XLA_FLAGS (kept
-    after the user's own flags); a value the user gave for that flag is left as it is; other
-    commands leave XLA_FLAGS alone."""
+def test_tour_asks_for_the_faster_compiling_emitters(monkeypatch, capsys):
+    """``tour`` adds ``--xla_cpu_use_fusion_emitters=false`` to XLA_FLAGS (after the user's own
+    flags); not when the user names that flag or sets an optimisation level (the older emitters
+    at level 0 miscompile: tools/repro_xla_emitters_level0.py); other commands leave XLA_FLAGS alone."""
+    import os
+
     from fsjax import cli
 
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
     assert main(["tour", "--list"]) == 0
     assert "edges" in capsys.readouterr().out
-    import os
-
     assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1 --xla_cpu_use_fusion_emitters=false"
-    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
-    cli._prefer_fast_compile()
-    assert os.environ["XLA_FLAGS"] == "--xla_cpu_use_fusion_emitters=true"
+    for given in ("--xla_cpu_use_fusion_emitters=true", "--xla_backend_optimization_level=0"):
+        monkeypatch.setenv("XLA_FLAGS", given)
+        cli._prefer_fast_compile()
+        assert os.environ["XLA_FLAGS"] == given
     monkeypatch.delenv("XLA_FLAGS")
     assert main(["ops", "--family", "filters"]) == 0
     capsys.readouterr()

@@ -475,7 +475,7 @@ def disc_visible_fraction(x):
     """
     x = jnp.clip(jnp.asarray(x), -1.0, 1.0)
     # clipped to [0, 1]: at x = -1 the rounding of asin(-1) / pi against 1/2 may leave -1e-17 (it
-    # did under XLA:CPU's older loop emitters), a fraction below 0
+    # did under XLA:CPU's older loop emitters at level 0), a fraction below 0
     return jnp.clip(0.5 + (x * jnp.sqrt(jnp.maximum(1.0 - x * x, 0.0)) + jnp.arcsin(x)) / math.pi, 0.0, 1.0)
 
 

@@ -373,7 +373,8 @@ def test_fit_says_no_circle_no_ellipse_with_a_reason(dtype):
             # last-bit differences decide whether it converges and the support test then refuses
             # it (unsupported_model) or it stops at max_steps (max_iterations). Measured on the two
             # clusters, float64: 67 steps then refused with XLA:CPU's default emitters, 100 steps
-            # with its older loop emitters (the suite's setting, tests/conftest.py). Either way a
+            # with its older loop emitters (which the fits use at top level, fsjax._linalg.FAST_COMPILE,
+            # and a run of the suite with them, stop 34). Either way a
             # refusal with NaN and a reason; which of the two is not a property of the points.
             allowed = {unsupported} if op == "fit_circle" else {unsupported, max_iter}
             for f in (getattr(fsjax.ops, op)(fsjax.Contour(jnp.asarray(p.astype(dtype)))), jfit[op](jnp.asarray(p.astype(dtype)))):

@@ -91,8 +91,8 @@ def test_traced_path_matches_eager_bucketed_path(pair):
     v = np.asarray(eager.valid)
     assert 20 < v.sum() <= 512  # the bucket (512 rows) is smaller than the capacity (1024)
     np.testing.assert_array_equal(v, np.asarray(traced.valid))
-    # float32, two compiled programs. Bit-identical under XLA:CPU's default emitters; under the
-    # older loop emitters the suite uses (tests/conftest.py) the sub-pixel step (a quadratic fit
+    # float32, two compiled programs. Bit-identical under XLA:CPU's default emitters; under its
+    # older loop emitters (a run of the suite with them, stop 34) the sub-pixel step (a quadratic fit
     # to differences of close Gaussian levels) turns rounding into small shifts, measured: uv
     # 8.4e-5 px, scale 1.8e-5 relative, descriptors 9.6e-6, angle 6e-7 rad, response 3e-8.
     # Tolerances ~3x those (uv 100x below SIFT's localisation noise):
