@@ -417,6 +417,10 @@ def test_volume_to_sdf_without_foreground_is_documented_inf(monkeypatch):
     assert not runner._documented_neg_inf("volume_to_sdf", fsjax.Volume(half), {})   # inf beside a finite value
     nan = np.full((4, 5, 6), np.nan)
     assert not runner._documented_neg_inf("volume_to_sdf", fsjax.Volume(nan), {})
+    mixed = np.full((4, 5, 6), np.inf)
+    mixed[1] = -np.inf   # both infinities at once: neither empty-class case
+    assert not runner._documented_neg_inf("volume_to_sdf", fsjax.Volume(mixed), {})
+    assert runner._documented_neg_inf("volume_to_sdf", fsjax.Volume(-np.full((4, 5, 6), np.inf)), {})
     monkeypatch.setattr(_run, "DOCUMENTED_ALL_INF", frozenset())   # the null: without the rule
     o = fz.Runner(specs, grad=False, vmap=False).run(c)
     assert (o.status, o.cls) == ("failed", "NONFINITE"), o
