@@ -40,7 +40,32 @@ def _cases():
         ("fit_circle core", lambda p, v: F._fit_circle_core.__wrapped__(p, v, 3.0, 0.15, 0.1, **kw), (e, v)),
         ("fit_cylinder", lambda x: P.fit_cylinder.__wrapped__(x), (pts,)),
         ("select_model", lambda x: P.select_model.__wrapped__(x), (pts,)),
+        _shape_case(),
     ]
+
+
+def _shape_case():
+    """shape_locate's core on the alignment scene (240 x 320, template 56 x 72), the arguments
+    shape_locate passes it captured from one call."""
+    import fsjax
+    from fsjax.ops.matching import _shape as S
+    from fsjax.synth import alignment_scene
+    from fsjax.synth._workpiece import workpiece_template
+
+    img = fsjax.Image(jnp.asarray(alignment_scene()[0], jnp.float32))
+    tpl = fsjax.Image(jnp.asarray(workpiece_template(), jnp.float32))
+    core, seen = S._shape_core, {}
+
+    def spy(*a, **k):
+        seen["a"], seen["k"] = a, k
+        return core(*a, **k)
+
+    S._shape_core = spy
+    try:
+        fsjax.ops.shape_locate(img, tpl)
+    finally:
+        S._shape_core = core
+    return ("shape_locate core", lambda *a: core.__wrapped__(*a, **seen["k"]), seen["a"])
 
 
 def main():
