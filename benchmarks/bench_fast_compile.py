@@ -2,7 +2,7 @@
 older loop emitters (compiler option ``xla_cpu_use_fusion_emitters=False``), one process,
 interleaved.
 
-    python benchmarks/bench_fast_compile.py
+    python benchmarks/bench_fast_compile.py [--only NAME,...]
 
 The fits are jitted here from their undecorated functions (``__wrapped__``), once with and once
 without the option, so the library's own decoration does not decide both columns. Compile is
@@ -41,7 +41,30 @@ def _cases():
         ("fit_cylinder", lambda x: P.fit_cylinder.__wrapped__(x), (pts,)),
         ("select_model", lambda x: P.select_model.__wrapped__(x), (pts,)),
         _shape_case(),
+        _relative_pose_case(),
     ]
+
+
+def _relative_pose_case():
+    """relative_pose's program on 500 noisy correspondences of two views (256 hypotheses)."""
+    from fsjax.fit import twoview as T
+    from fsjax.fit.calibrate import rodrigues
+
+    rng = np.random.default_rng(1)
+    X = rng.uniform([-2, -2, 6], [2, 2, 10], (500, 3))
+    R = np.asarray(rodrigues(jnp.asarray([0.0, 0.1, 0.0])))
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+
+    def pr(P):
+        return (P[:, :2] / P[:, 2:]) * 500 + [320, 240] + 0.3 * rng.standard_normal((len(P), 2))
+
+    uv1 = jnp.asarray(pr(X), jnp.float32)
+    uv2 = jnp.asarray(pr(X @ R.T + [-1.0, 0.0, 0.0]), jnp.float32)
+    K = jnp.asarray(K, jnp.float32)
+    one = jnp.asarray(1.0, jnp.float32)
+    fn = T._relative_pose.__wrapped__
+    return ("relative_pose", lambda k, a, b, K: fn(k, a, b, K, K, None, None, one, 256, 1.5 * one),
+            (jax.random.PRNGKey(0), uv1, uv2, K))
 
 
 def _shape_case():
@@ -69,7 +92,12 @@ def _shape_case():
 
 
 def main():
+    import sys
+
+    only = sys.argv[sys.argv.index("--only") + 1].split(",") if "--only" in sys.argv else None
     for name, fn, x in _cases():
+        if only is not None and not any(o in name for o in only):
+            continue
         res = {}
         for lab, opt in (("default", None), ("fast", FAST_COMPILE)):
             c = time.process_time()
