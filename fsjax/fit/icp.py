@@ -79,7 +79,6 @@ public k-NN, :func:`fsjax.ops.knn` (any dimension, grid or brute force, a reusab
 
 from __future__ import annotations
 
-import functools
 import math
 
 import jax
@@ -88,6 +87,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_choice, check_range, check_static_int, is_concrete
+from .._linalg import jit_fast_compile
 from ..ops import knn
 from ..ops.points._cloud import smallest_eigvec3
 from ..ops.points._search import (
@@ -319,8 +319,13 @@ def _progress_line(it, n_ok, rms, step_deg, exact):
           f"{float(step_deg):.3g} deg{'' if bool(exact) else ' (approximate neighbours)'}", flush=True)
 
 
-@functools.partial(jax.jit, static_argnames=("method", "max_iterations", "inner_steps", "normal_k", "cov_k",
-                                              "has_normals", "verbose"))
+# At top level (an eager call of icp) the program compiles with FAST_COMPILE (XLA:CPU's older loop
+# emitters, optimisation level pinned to 2; see fsjax._linalg): at 20,000 points, float32, one
+# process, interleaved (python benchmarks/compile_knn.py --ab), compile CPU 4.7 -> 2.7 s
+# (point-to-plane) and 6.3 -> 4.3 s (GICP), run time not worse, results within float32 rounding
+# (docs/benchmarks_icp.md). Inside a user's jit / vmap the enclosing program's options apply.
+@jit_fast_compile(static_argnames=("method", "max_iterations", "inner_steps", "normal_k", "cov_k",
+                                   "has_normals", "verbose"))
 def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist, min_inlier, rot_tol, trans_tol,
               *, method, max_iterations, inner_steps, normal_k, cov_k, has_normals, verbose=False):
     dtype = src.dtype
