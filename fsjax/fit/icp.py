@@ -528,7 +528,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             best2 = jnp.where(exact, jnp.minimum(best, ms), jnp.inf)
             since2 = jnp.where(exact & ~better, since + 1, 0)
             wmax2 = jnp.where(exact & ~better, jnp.maximum(wmax, dang), 0.0)
-            # a limit cycle (float64 GICP on 1,500 bunny points: period 3, steps 0.0067 / 0.0067 /
+            # a limit cycle (float64 GICP on 1,500 bunny points: period 3, steps 0.0065 / 0.0067 /
             # 0.0002 deg, the pose back to 2e-16 after each period, for ever): the new pose equals one
             # of the last _CYCLE_ITERS exact-phase poses within the convergence tolerances
             hr, ht = hist
