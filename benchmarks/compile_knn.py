@@ -6,7 +6,14 @@ program (wall, and process CPU: the steadier figure on a shared machine). The lo
 and the number of kernels of the compiled program, all and distinct (see :func:`kernels`: load-free; the
 distinct count is the better guide to the compile time).
 
-    python benchmarks/compile_knn.py [--only knn10_20k,icp_p2plane_20k,...] [--x64]
+    python benchmarks/compile_knn.py [--only knn10_20k,icp_p2plane_20k,...] [--x64] [--fast | --ab]
+
+``--fast``: the program compiled with ``fsjax._linalg.FAST_COMPILE`` (XLA:CPU's older loop emitters at
+optimisation level 2: what a top-level call of a fit compiled with ``jit_fast_compile`` gets).
+``--ab``: both programs (XLA's default options and ``FAST_COMPILE``) compiled in one process, the
+order alternated over ``--rounds`` rounds; their runs interleaved (median of ``--runs`` each); the
+largest difference of every output leaf printed (run time of the older emitters is not always
+better: 3x slower on some stencil kernels, ``docs/compile_cache.md``).
 
 Workloads: ``index_build_20k`` (``build_index(coarse=True)`` alone, ICP's target index),
 ``knn{1,10,32}_{2k,20k}`` (``fsjax.ops.knn``, method auto: 2k x 2k is the blocked
@@ -114,17 +121,24 @@ def main():
     ap.add_argument("--only", default=None)
     ap.add_argument("--x64", action="store_true")
     ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--fast", action="store_true")
+    ap.add_argument("--ab", action="store_true")
+    ap.add_argument("--rounds", type=int, default=2)
     a = ap.parse_args()
     dt = jnp.float64 if a.x64 else jnp.float32
     w = workloads(dt)
     names = a.only.split(",") if a.only else list(w)
     print(f"dtype={jnp.dtype(dt).name} jax={jax.__version__}", flush=True)
+    if a.ab:
+        return ab(w, names, a.runs, a.rounds)
+    from fsjax._linalg import FAST_COMPILE
+
     for name in names:
         f, mk = w[name]
         args = mk()
         l0 = os.getloadavg()[0]
         c0 = time.process_time()
-        lo = jax.jit(f).trace(*args).lower()
+        lo = jax.jit(f, compiler_options=FAST_COMPILE if a.fast else None).trace(*args).lower()
         c1 = time.process_time()
         comp = lo.compile()
         c2 = time.process_time()
@@ -139,6 +153,45 @@ def main():
               f"kernels {kernels(comp):5d} ({kernels(comp, distinct=True):4d} distinct)  "
               f"run {np.median(ts) * 1e3:9.1f} ms wall {np.median(cs) * 1e3:9.1f} ms cpu  "
               f"load {l0:.1f}->{os.getloadavg()[0]:.1f}", flush=True)
+
+
+def ab(w, names, runs, rounds):
+    """XLA's default options against ``FAST_COMPILE``, one process: compile CPU (order alternated per
+    round), interleaved run times, largest output difference."""
+    from fsjax._linalg import FAST_COMPILE
+
+    opts = {"default": None, "fast": FAST_COMPILE}
+    for name in names:
+        f, mk = w[name]
+        args = mk()
+        l0 = os.getloadavg()[0]
+        comp, cpu = {}, {lab: [] for lab in opts}
+        for r in range(rounds):
+            for lab in (list(opts) if r % 2 == 0 else list(opts)[::-1]):
+                jax.clear_caches()  # else a round after the first finds the program compiled
+                lo = jax.jit(f, compiler_options=opts[lab]).trace(*args).lower()
+                c0 = time.process_time()
+                comp[lab] = lo.compile()
+                cpu[lab].append(time.process_time() - c0)
+        outs = {lab: jax.block_until_ready(comp[lab](*args)) for lab in opts}
+        ts = {lab: [] for lab in opts}
+        for _ in range(runs):
+            for lab in opts:
+                t0, u0 = time.perf_counter(), time.process_time()
+                jax.block_until_ready(comp[lab](*args))
+                ts[lab].append((time.perf_counter() - t0, time.process_time() - u0))
+        la, lb = (jax.tree_util.tree_leaves(outs[lab]) for lab in opts)
+        diff = max((float(np.max(np.abs(np.where(np.isnan(p) & np.isnan(q), 0.0, np.asarray(p, float) - np.asarray(q, float))))
+                    if np.asarray(p).size else 0.0) for p, q in zip(la, lb)), default=0.0)
+        line = "  ".join(f"{lab}: compile {' / '.join(f'{c:.2f}' for c in cpu[lab])} s cpu, run "
+                         f"{np.median([t[0] for t in ts[lab]]) * 1e3:.1f} ms wall {np.median([t[1] for t in ts[lab]]) * 1e3:.1f} ms cpu"
+                         for lab in opts)
+        print(f"{name:24s} {line}  max|diff| {diff:.3g}  load {l0:.1f}->{os.getloadavg()[0]:.1f}", flush=True)
+        for lab in opts:
+            o = outs[lab]
+            if hasattr(o, "iterations"):  # a fit record
+                print(f"  {lab}: iterations {int(o.iterations)} converged {bool(o.converged)} reason {int(o.reason)} "
+                      f"rms_len {float(o.rms_len):.9g} R[0] {np.asarray(o.R)[0]}", flush=True)
 
 
 if __name__ == "__main__":

@@ -36,7 +36,11 @@ increment of a float32 run stalls at rounding noise and would otherwise never "c
 Exact correspondences can also cycle once aligned (a tiny motion swaps two pair sets; seen in
 float32 with period 4 and steps of 0.0013-0.0015 deg): the fit is called converged when, with
 exact pairs, the mean squared distance has set no new low (by 1e-6 relative) for 4 turns and
-no step in them exceeded 1e-4 rad (0.0057 deg). A drift with larger steps still runs out of
+no step in them exceeded 1e-4 rad (0.0057 deg), or no step exceeded 1e-3 rad (0.057 deg) and the
+pose has come back, within ``rot_tol`` / ``trans_tol``, to one of the 4 exact-phase poses before it:
+a limit cycle that no further turn leaves (float64 GICP on 1,500 bunny points: period 3, steps
+0.0065 / 0.0067 / 0.0002 deg, ran all 50 iterations before this rule; the pose returned is one of the
+cycle's, within its amplitude of the others). A drift with larger steps still runs out of
 iterations. The approximate phase ends when the increment is small or the mean squared
 distance stops falling.
 Measured float32 accuracy on the bunny (two 20,000-point samples, 10 deg, ``docs/benchmarks_icp.md``):
@@ -79,7 +83,6 @@ public k-NN, :func:`fsjax.ops.knn` (any dimension, grid or brute force, a reusab
 
 from __future__ import annotations
 
-import functools
 import math
 
 import jax
@@ -88,6 +91,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_choice, check_range, check_static_int, is_concrete
+from .._linalg import jit_fast_compile
 from ..ops import knn
 from ..ops.points._cloud import smallest_eigvec3
 from ..ops.points._search import (
@@ -119,9 +123,12 @@ __all__ = ["ICPResult", "icp", "MultiStartResult", "icp_multistart", "rotation_g
 
 _METHODS = ("point_to_point", "point_to_plane", "gicp")
 # exact-phase cycle test (see _icp_core): turns without a new low of the mean squared distance,
-# and the largest rotation step allowed in them (radians; 0.0057 deg)
+# and the largest rotation step allowed in them (radians; 0.0057 deg); when the pose has come back
+# (within rot_tol / trans_tol) to one of the _CYCLE_ITERS poses before it -- a limit cycle that no
+# further turn can leave -- steps up to _CYCLE_MAX (radians; 0.057 deg) are allowed
 _CYCLE_ITERS = 4
 _CYCLE_TOL = 1e-4
+_CYCLE_MAX = 1e-3
 
 
 # ---------------------------------------------------------------------------
@@ -319,8 +326,13 @@ def _progress_line(it, n_ok, rms, step_deg, exact):
           f"{float(step_deg):.3g} deg{'' if bool(exact) else ' (approximate neighbours)'}", flush=True)
 
 
-@functools.partial(jax.jit, static_argnames=("method", "max_iterations", "inner_steps", "normal_k", "cov_k",
-                                              "has_normals", "verbose"))
+# At top level (an eager call of icp) the program compiles with FAST_COMPILE (XLA:CPU's older loop
+# emitters, optimisation level pinned to 2; see fsjax._linalg): at 20,000 points, float32, one
+# process, interleaved (python benchmarks/compile_knn.py --ab), compile CPU 4.7 -> 2.7 s
+# (point-to-plane) and 6.3 -> 4.3 s (GICP), run time not worse, results within float32 rounding
+# (docs/benchmarks_icp.md). Inside a user's jit / vmap the enclosing program's options apply.
+@jit_fast_compile(static_argnames=("method", "max_iterations", "inner_steps", "normal_k", "cov_k",
+                                   "has_normals", "verbose"))
 def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist, min_inlier, rot_tol, trans_tol,
               *, method, max_iterations, inner_steps, normal_k, cov_k, has_normals, verbose=False):
     dtype = src.dtype
@@ -475,7 +487,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     # come from exact correspondences (the evaluation turn is exact). A first turn (``first``)
     # searches the target's own neighbours instead and only sets ``aux`` and the inlier distance.
     def body(st):
-        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl, src_self, cs = st
+        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl, src_self, cs, hist = st
         stop = ~first & (done | (bad != OK) | (it >= max_iterations))
         p = src @ r.T + t
         # first turns: the source's own neighbours (GICP only), then the target's; then the pairs
@@ -490,7 +502,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                 def src_turn(_):  # the covariances of local_covariances(src, sv, k=cov_k)
                     cov, _ = _cov_from_idx(src, idx[:n_src, :cov_k])
                     cs2 = _gicp_cov(jnp.where(sv[:, None, None], cov, jnp.nan))
-                    return st[:16] + (jnp.bool_(False), cs2)
+                    return st[:16] + (jnp.bool_(False), cs2, hist)
 
                 def tgt_turn(_):
                     aux2, inl2 = from_self(idx, d2, aux, inl)
@@ -516,8 +528,17 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             best2 = jnp.where(exact, jnp.minimum(best, ms), jnp.inf)
             since2 = jnp.where(exact & ~better, since + 1, 0)
             wmax2 = jnp.where(exact & ~better, jnp.maximum(wmax, dang), 0.0)
-            cycled = (since2 >= _CYCLE_ITERS) & (wmax2 <= _CYCLE_TOL)
+            # a limit cycle (float64 GICP on 1,500 bunny points: period 3, steps 0.0065 / 0.0067 /
+            # 0.0002 deg, the pose back to 2e-16 after each period, for ever): the new pose equals one
+            # of the last _CYCLE_ITERS exact-phase poses within the convergence tolerances
+            hr, ht = hist
+            back = jnp.any((jnp.radians(rotation_angle_deg(r2 @ jnp.swapaxes(hr, -1, -2))) <= rot_tol)
+                           & (jnp.linalg.norm(t2 - ht, axis=-1) <= trans_tol))
+            cycled = (since2 >= _CYCLE_ITERS) & ((wmax2 <= _CYCLE_TOL) | (back & (wmax2 <= _CYCLE_MAX)))
             upd = ~stop & (bad2 == OK)
+            keep = exact & upd  # the history holds exact-phase poses only (NaN: none yet)
+            hist2 = (jnp.where(keep, jnp.concatenate([hr[1:], r2[None]]), jnp.where(exact, hr, jnp.nan)),
+                     jnp.where(keep, jnp.concatenate([ht[1:], t2[None]]), jnp.where(exact, ht, jnp.nan)))
             if verbose:  # static: no cost unless asked; one host line per iteration
                 n_pairs = jnp.sum(ok)
                 rms = jnp.sqrt(jnp.sum(jnp.where(ok, d2c, 0.0)) / jnp.maximum(n_pairs, 1)) * scale
@@ -526,7 +547,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
                     jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
                     jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled,
-                    best2, since2, wmax2, first, aux, inl, src_self, cs)
+                    best2, since2, wmax2, first, aux, inl, src_self, cs, hist2)
 
         return jax.lax.cond(first, first_turn, turn, None)
 
@@ -534,7 +555,8 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     init = (jnp.int32(0), r0, t0, ~input_ok, input_reason.astype(jnp.int32), jnp.int32(0), z, sv, jnp.bool_(False),
             jnp.bool_(brute), jnp.asarray(jnp.inf, dtype), jnp.int32(0), jnp.asarray(0.0, dtype),
             jnp.bool_(need_self), aux0, inlier0, jnp.bool_(two),
-            jnp.zeros((n_src, 3, 3) if two else (1,), dtype))
+            jnp.zeros((n_src, 3, 3) if two else (1,), dtype),
+            (jnp.full((_CYCLE_ITERS, 3, 3), jnp.nan, dtype), jnp.full((_CYCLE_ITERS, 3), jnp.nan, dtype)))
     out = jax.lax.while_loop(cond, body, init)
     it, r, t, done, bad, n_ok, d2a, ok = out[:8]
     inlier_dist = out[15]

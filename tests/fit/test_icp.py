@@ -205,6 +205,43 @@ def test_float32_exact_pairs_that_cycle_are_converged_not_run_out():
     assert float(rotation_error_deg(cut.R, res.R)) < 0.01
 
 
+def test_float64_gicp_limit_cycle_is_converged(monkeypatch):
+    """GICP, float64, 1,500-point bunny samples 10 deg apart: once aligned, the exact pairs cycle
+    with period 3 (rotation steps 0.0065, 0.0067, 0.0002 deg; the pose comes back to 2e-16 after
+    each period). The steps exceed the cycle test's 1e-4 rad (0.0057 deg), so this ran all 50
+    iterations and said MAX_ITER while float32 converged in 9. Not a tolerance or covariance
+    problem: a limit cycle that no further turn leaves. A pose that comes back (within
+    rot_tol / trans_tol) to one of the last 4 exact-phase poses, with no new low of the mean
+    squared distance for 4 turns, now counts as converged for steps up to _CYCLE_MAX (0.057 deg).
+    The null: the same run under the old rule (_CYCLE_MAX = _CYCLE_TOL) reaches its cap."""
+    import importlib
+
+    icp_mod = importlib.import_module("fsjax.fit.icp")
+    c, s = np.cos(np.radians(10.0)), np.sin(np.radians(10.0))
+    rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    tgt = jnp.asarray(surface_points("bunny", 1500, 0), jnp.float64)
+    src = jnp.asarray(surface_points("bunny", 1500, 1) @ rz.T, jnp.float64)
+    res = icp(src, tgt, method="gicp")
+    err = float(rotation_error_deg(res.R, jnp.asarray(rz.T)))
+    try:  # the null: the rule before (a program traced apart: another max_iterations, caches cleared)
+        monkeypatch.setattr(icp_mod, "_CYCLE_MAX", icp_mod._CYCLE_TOL)
+        for f in (icp_mod._icp_core.fast, icp_mod._icp_core.plain):
+            f.clear_cache()
+        old = icp(src, tgt, method="gicp", max_iterations=30)
+    finally:
+        monkeypatch.undo()
+        for f in (icp_mod._icp_core.fast, icp_mod._icp_core.plain):
+            f.clear_cache()
+    gap = float(rotation_error_deg(res.R, old.R))
+    print(f"float64 GICP, 1500 points: reason {int(res.reason)} after {int(res.iterations)} iterations, "
+          f"rotation error {err:.4f} deg; old rule: reason {int(old.reason)} after {int(old.iterations)}, "
+          f"{gap:.4f} deg from the converged pose")
+    assert bool(res.converged) and int(res.reason) == 0 and int(res.iterations) <= 15
+    assert err < 0.5  # the two samples' own offset is ~0.32 deg; the null (no ICP) is 10 deg
+    assert not bool(old.converged) and int(old.iterations) == 30  # the cycle never ends by itself
+    assert gap < 0.01  # stopping in the cycle loses nothing: the capped run is within its amplitude
+
+
 @pytest.mark.slow
 def test_grid_path_small_clouds(monkeypatch):
     """The grid path of ICP (index + approximate then exact phases) on clouds small enough for the
@@ -259,7 +296,7 @@ def test_gicp_traces_one_search_and_one_index(monkeypatch):
     for name in ("_query_grid_knn", "_brute_queries", "knn", "build_index"):
         count(name)
     monkeypatch.setattr(icp_mod, "_BRUTE_LIMIT", 0)  # the grid path at a size that traces fast
-    icp_mod._icp_core.clear_cache()  # a cached trace would call nothing
+    icp_mod._icp_core.plain.clear_cache()  # a cached trace would call nothing (traced: the plain jit)
     tgt = jnp.asarray(surface_points("bunny", 400, 0))
     src = jnp.asarray(surface_points("bunny", 300, 1))
     jaxpr = jax.make_jaxpr(lambda s, t: icp(s, t, method="gicp"))(src, tgt)

@@ -205,6 +205,9 @@ def _select_passes(d, ids, k):
     return v.T, jnp.take_along_axis(ids, i.T, axis=1)
 
 
+_SORT_LOOP = True  # the transposition steps of _sort_nearly_sorted in a fori_loop (a probe knob)
+
+
 def _sort_nearly_sorted(v, ids, rounds: int = 2):
     """Odd-even transposition passes (``rounds`` even + odd pairs) on the rows of ``v`` (B, n),
     carrying ``ids``. Returns ``(v, ids, sorted)``: ``sorted`` (B,) flags the rows now ascending.
@@ -224,8 +227,11 @@ def _sort_nearly_sorted(v, ids, rounds: int = 2):
         sr = right & (pv > v)
         return (jnp.where(sl, nv, jnp.where(sr, pv, v)), jnp.where(sl, ni, jnp.where(sr, pi, ids)))
 
-    for _ in range(rounds):
-        v, ids = step(*step(v, ids, 0), 1)
+    if _SORT_LOOP:  # one compiled step, its parity traced (unrolled: 4 copies, ~7 kernels each)
+        v, ids = lax.fori_loop(0, 2 * rounds, lambda i, c: step(*c, i % 2), (v, ids))
+    else:
+        for _ in range(rounds):
+            v, ids = step(*step(v, ids, 0), 1)
     return v, ids, jnp.all(v[:, 1:] >= v[:, :-1], axis=1)
 
 
