@@ -141,6 +141,19 @@ def _extrema_score(D, threshold):
     return jnp.where(ext, jnp.abs(Di), 0.0)[:, 5:-5, 5:-5]
 
 
+def _select(rows, cap: int):
+    """The ``cap`` largest scores of ``rows (R, w)`` and their flat indices (``lax.top_k`` of the
+    raveled array), computed only when some score is positive (else zeros: no candidate).
+
+    The ``lax.cond`` is also what keeps this fast: its operand is materialised as the ``(R, w)`` array
+    the extremum test writes, and raveled inside the branch. Raveled in the fusion that computes it,
+    XLA:CPU indexes a 1-D output (a division per element, no vectorisation): test + selection took
+    0.175 s on a first-octave-sized DoG stack against 0.049 s this way (same values and indices).
+    Under ``vmap`` the ``cond`` becomes a ``select`` and that saving is lost (not the result)."""
+    return jax.lax.cond(jnp.any(rows > 0), lambda r: tuple(jax.lax.top_k(r.reshape(-1), cap)),
+                        lambda r: (jnp.zeros((cap,), r.dtype), jnp.zeros((cap,), jnp.int32)), rows)
+
+
 def _deriv(D, ob, H, W, s, y, x):
     """Value, gradient and Hessian of the DoG at integer (s, y, x) (vectors of candidates), from one
     gather of the 3x3x3 neighbourhood. ``D`` is every octave's DoG stack flattened into one buffer;
@@ -328,9 +341,9 @@ def _keypoints(img, contrast, n_max: int, n_octaves: int, upsample: bool):
         # inner scales and a 5 px border excluded by slicing (a constant mask would be folded by XLA)
         score = _extrema_score(D, 0.5 * contrast / _S)
         hi, wi = H - 10, W - 10
-        score = score.ravel()
-        cap = min(max(n_max >> max(o - int(upsample), 0), 64), score.shape[0])
-        val, idx = jax.lax.top_k(score, cap)
+        score = score.reshape(-1, wi)  # rows (scale, y): never raveled inside the fusion (see _select)
+        cap = min(max(n_max >> max(o - int(upsample), 0), 64), score.size)
+        val, idx = _select(score, cap)
         full = lambda v, cap=cap: jnp.full((cap,), v, jnp.int32)  # noqa: E731
         cands.append((val, idx // (hi * wi) + 1, (idx // wi) % hi + 5, idx % wi + 5, full(o), full(offD), full(offG),
                       full(H), full(W)))
