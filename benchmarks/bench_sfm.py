@@ -13,7 +13,10 @@ recorded.
 Also: repeatability and matching score of the features (fsjax DoG + RootSIFT vs OpenCV SIFT with
 RootSIFT) on two real images warped by three known homographies.
 
-Run ``python benchmarks/bench_sfm.py [--sets fountain-P11,herzjesu-P8] [--no-features]``; writes
+Run ``python benchmarks/bench_sfm.py [--sets fountain-P11,herzjesu-P8] [--no-features] [--repeats N]``
+(``--repeats N``: after the first fsjax run, compiled fsjax and COLMAP run N times each, interleaved
+with the order alternating, and the medians are reported: per-repeat ratios, their median, median
+stage times, the median run's table); writes
 ``benchmarks/results/sfm.json`` and prints the Markdown tables quoted in ``docs/sfm.md``.
 """
 
@@ -147,6 +150,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--sets", default="fountain-P11,herzjesu-P8")
     ap.add_argument("--no-features", action="store_true")
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="compiled fsjax and COLMAP each N times, interleaved (order alternating); medians reported")
     args = ap.parse_args(argv)
     res = dict(machine=machine_info(), load_before=load_average(), sets={})
     if not args.no_features:
@@ -157,11 +162,27 @@ def main(argv=None):
             print(f"| {r['image']} | {r['warp']} | {r['lib']} | {r['n_a']}/{r['n_b']} | {r['repeatability']:.3f} | "
                   f"{r['matching_score']:.3f} | {r['n_correct']} |")
     for name in args.sets.split(","):
+        load0 = load_average()
         first = run_fsjax(name)
-        colmap = run_colmap(name)
-        second = run_fsjax(name)
-        res["sets"][name] = dict(fsjax_first=first, colmap=colmap, fsjax=second, load=load_average())
-        print(f"\n{name} (load {load_average()})")
+        cruns, fruns, loads = [], [], []
+        for r in range(args.repeats):  # interleaved, the order alternating: COLMAP first on even repeats
+            for which in (("colmap", "fsjax") if r % 2 == 0 else ("fsjax", "colmap")):
+                (cruns if which == "colmap" else fruns).append(run_colmap(name) if which == "colmap" else run_fsjax(name))
+            loads.append(load_average())
+        ratios = [f["times_s"]["total"] / c["times_s"]["total"] for f, c in zip(fruns, cruns)]
+        med = lambda runs: sorted(runs, key=lambda run: run["times_s"]["total"])[(len(runs) - 1) // 2]  # noqa: E731
+        colmap, second = med(cruns), med(fruns)
+        stage_med = lambda runs: {k: float(np.median([r["times_s"][k] for r in runs])) for k in runs[0]["times_s"]}  # noqa: E731
+        res["sets"][name] = dict(fsjax_first=first, colmap=colmap, fsjax=second, colmap_runs=cruns, fsjax_runs=fruns,
+                                 ratios=ratios, ratio_median=float(np.median(ratios)), colmap_stage_median_s=stage_med(cruns),
+                                 fsjax_stage_median_s=stage_med(fruns), load_start=load0, loads=loads, load=load_average())
+        print(f"\n{name} (load {load0} at the start, {load_average()} at the end; {args.repeats} repeat(s))")
+        print("compiled fsjax / COLMAP per repeat: " + ", ".join(
+            f"{f['times_s']['total']:.1f} / {c['times_s']['total']:.1f} s = {q:.2f}x" for f, c, q in zip(fruns, cruns, ratios))
+            + f"; median ratio {np.median(ratios):.2f}x")
+        print("median stage times (s): COLMAP", {k: round(v, 2) for k, v in stage_med(cruns).items()})
+        print("                        fsjax ", {k: round(v, 2) for k, v in stage_med(fruns).items()})
+        print("(tables below: the median run of each by total time)")
         print("| pipeline | registered | rotation err median / max (deg) | centre err median / max (mm) | points | "
               "reproj. (px) | time (s) |")
         print("|---|---|---|---|---|---|---|")
