@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import fsjax
+from fsjax._linalg import FAST_COMPILE
 from fsjax.fit import ransac, select_model
 from fsjax.ops import cluster_centroids
 from fsjax.synth import lidar_scene
@@ -145,7 +146,8 @@ def _angle(a, b):
 def measure_breakdown(ratios=(0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.9), trials: int = 20, n_hypotheses: int = 64,
                       n: int = 500) -> dict:
     """Plane RANSAC over outlier ratios: success rate, acceptance rate, wrongly accepted fits, null error."""
-    f = jax.jit(jax.vmap(lambda key, x: ransac(key, x, "plane", threshold=0.01, n_hypotheses=n_hypotheses)))
+    f = jax.jit(jax.vmap(lambda key, x: ransac(key, x, "plane", threshold=0.01, n_hypotheses=n_hypotheses)),
+                compiler_options=FAST_COMPILE)
     key = jax.random.PRNGKey(0)
     rows = []
     for r in ratios:
@@ -190,7 +192,8 @@ def surface_patch(kind: str, seed: int, n: int = 150, noise: float = 0.01):
 
 def measure_model_selection(trials: int = 67, n: int = 150, noise: float = 0.01) -> dict:
     """BIC and AIC accuracy per true model, median RMS of every candidate, median criterion values."""
-    f = jax.jit(jax.vmap(lambda x: select_model(x)))
+    # at top level: XLA:CPU's older emitters at level 2 (FAST_COMPILE), whatever the process-wide level
+    f = jax.jit(jax.vmap(lambda x: select_model(x)), compiler_options=FAST_COMPILE)
     out = {}
     for i, kind in enumerate(MODEL_KINDS):
         x = jnp.asarray(np.stack([surface_patch(kind, 1000 * i + t, n, noise) for t in range(trials)]))
