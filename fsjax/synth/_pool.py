@@ -344,10 +344,15 @@ def _pool_gray(variant, size):
 
 @register_pool(StructuredLightRig)
 def _pool_rig(variant, size):
-    """Camera 32 x 24 at the origin looking +z; 64-column projector 100 mm to the right, aimed at z = 500 mm."""
+    """Camera of the raster ``size`` (32 x 24 at the default size; focal length 40 px scaled by
+    width / 32, so the field of view stays; principal point at the centre) at the origin looking
+    +z; 64-column projector 100 mm to the right, aimed at z = 500 mm. The camera takes ``size``
+    so a column map of that size fits it (``triangulate_column`` in the chain fuzzer)."""
     from ..render.camera import look_at
 
-    cam = Camera.from_intrinsics(40.0, 40.0, 15.5, 11.5, width=32, height=24)
+    h, w = size
+    f = 40.0 * w / 32.0
+    cam = Camera.from_intrinsics(f, f, (w - 1) / 2.0, (h - 1) / 2.0, width=w, height=h)
     R, t = look_at([100.0 + 10.0 * variant, 0.0, 0.0], [0.0, 0.0, 500.0], up=[0.0, -1.0, 0.0])
     proj = Camera.from_intrinsics(80.0, 80.0, 31.5, 23.5, width=64, height=48, R=R, t=t)
     return StructuredLightRig(cam, proj)

@@ -547,3 +547,27 @@ def test_stage_programs_called_with_device_arrays_no_false_recompile(planted, mo
     monkeypatch.setattr(_run, "_device", lambda tree: tree)   # the null: numpy batches as they are
     o = second_chain_outcome()
     assert (o.status, o.cls, o.stage) == ("failed", "RECOMPILE", 1), o
+
+
+def test_triangulate_column_runs_on_the_pool_at_every_raster_size():
+    """The pool's structured-light rig takes the raster size of the chain's column map (its
+    camera was 32 x 24 whatever the map, so ``triangulate_column`` was always refused): at the
+    canonical size, an edge size, and with the rig as the running value, it now executes in
+    every way (eager, jit, vmap, grad) and passes, and the rig at the default size is unchanged."""
+    from fsjax.synth import standard_input
+    from fsjax.types import StructuredLightRig
+
+    spec = fsjax.get_op("triangulate_column")
+    runner = fz.Runner([spec, fsjax.get_op("gaussian")])
+    chains = [_chain(["triangulate_column"], size=(16, 16)),
+              _chain(["gaussian", "triangulate_column"], kind="odd", size=(3, 5), dtype="float32"),
+              fz.Chain.from_json({"input": {"sort": "StructuredLightRig", "kind": "scene", "size": [16, 16],
+                                            "dtype": "float64", "variant": 0},
+                                  "stages": [{"op": "triangulate_column", "params": {}, "slot": 1}]})]
+    for c in chains:
+        o = runner.run(c)
+        assert o.status == "ok", (c.describe(), o)
+        assert "triangulate_column" in o.executed
+    cam = standard_input(StructuredLightRig, 0).camera
+    assert (cam.width, cam.height) == (32, 24)
+    assert [float(v) for v in cam.K[0]] == [40.0, 0.0, 15.5] and float(cam.K[1, 2]) == 11.5

@@ -464,3 +464,31 @@ def test_lm_rotation_z3d_refused_both_ways_is_no_mismatch(monkeypatch):
     monkeypatch.setattr(_run, "_both_refused", lambda x, y: False)   # the null: compare every field
     o = fz.Runner(specs, grad=False).run(c)
     assert (o.status, o.cls) == ("failed", "MISMATCH"), o
+
+
+# reconstruct_erosion / reconstruct_dilation computed in the mask's dtype: a float64 marker over a
+# float32 mask gave float32 (CONTRACT in the ninth full run of docs/fuzz.md: the minimised chain
+# below; distance_transform of a Region is float64, the pool's second input float32). Fixed in
+# ops/measure2d/_segment.py: both in their promoted dtype.
+REC_DTYPE = {"input": {"dtype": "float32", "kind": "scene", "size": [16, 16], "sort": "Region", "variant": 0},
+             "stages": [{"op": "distance_transform", "a": None, "b": None, "params": {}, "slot": 0},
+                        {"op": "reconstruct_erosion", "a": None, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_reconstruct_keeps_the_promoted_dtype():
+    import numpy as np
+
+    c = fz.Chain.from_json(REC_DTYPE)
+    o = fz.Runner([fsjax.get_op("distance_transform"), fsjax.get_op("reconstruct_erosion")],
+                  grad=False, vmap=False).run(c)
+    assert o.status == "ok", o
+    m64 = fz.build_input(fsjax.Image, "scene", (16, 16), "float64")
+    k32 = fz.build_input(fsjax.Image, "scene", (16, 16), "float32", 1)
+    for name in ("reconstruct_erosion", "reconstruct_dilation"):
+        f = fsjax.get_op(name).fn
+        r = f(m64, k32)
+        assert r.data.dtype == jnp.float64, name
+        # the same values as with both inputs float64 (the mask's float32 values, widened)
+        ref = f(m64, fsjax.Image(jnp.asarray(k32.data, jnp.float64)))
+        np.testing.assert_array_equal(np.asarray(r.data), np.asarray(ref.data))
+        assert f(k32, k32).data.dtype == jnp.float32, name

@@ -141,6 +141,10 @@ def _rec_dilate(marker, mask, connectivity: int = 8):
 
 @functools.partial(jax.jit, static_argnames=("dilate",))
 def _reconstruct_core(marker, mask, *, dilate: bool):
+    # both in their promoted dtype: the result keeps the wider of the two (a float64 marker
+    # over a float32 mask gave float32; fuzz CONTRACT, tests/fuzz/test_regressions.py)
+    dt = jnp.result_type(marker, mask)
+    marker, mask = jnp.asarray(marker, dt), jnp.asarray(mask, dt)
     if dilate:
         return _rec_dilate(marker, mask)
     return -_rec_dilate(-marker, -mask)
