@@ -38,8 +38,6 @@ MATCH3D_MORE_METHODS = ("fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3
 MATCH3D_MORE_NOT_YET = {
     **{("depth", m): "the depth row: fsjax/synth/_match3d_depth.py (run_depth_cell, tests/ops/test_match3d_depth.py)"
        for m in MATCH3D_MORE_METHODS},
-    ("depth", "chamfer_rotation_z3d"): "not yet: the depth row has no chamfer_rotation_z3d cell "
-    "(fsjax/synth/_match3d_depth.py)",
 }
 
 # mesh cells whose scene is brought to the template's mass per unit area (fsjax.synth._match3d.MESH_AREA_DENSITY;
