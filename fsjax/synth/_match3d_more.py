@@ -186,3 +186,26 @@ def _chamfer_rot_cell(structure, *, seed, with_object, dtype, timing, clean):
     out["null_centre"] = (float(np.linalg.norm(np.asarray(m0.apply(jnp.asarray(c_t, m0.t.dtype))) - truth["centre"]))
                           if bool(m0.valid) else float("nan"))
     return out
+
+
+def lm_rotation_floor(seed: int = 0, sigma: float = 1.0, start_offset_deg: float = 0.0) -> dict:
+    """Where :func:`fsjax.ops.lm_rotation_z3d` ends on the clean voxel scene of the refined Fourier-Mellin
+    column (no clutter, no noise; seeds ``200 + seed`` as :func:`run_more_cell`) when started from the TRUE
+    pose turned by ``start_offset_deg`` about z, with scene and template blurred by ``sigma`` (the grid's 1.0):
+    ``{"error_deg", "centre_error"}``. The same end from the truth and from a start off it says the error is
+    the cost's minimum (the data's), not the start's or the solver's."""
+    from .. import ops
+    from ._match3d import rotation_zyx
+
+    rng = np.random.default_rng(200 + seed)
+    kw = dict(shift=rng.uniform(-5, 5, 3), seed=seed, structure="voxel", angles_deg=(rng.uniform(-180, 180), 0.0, 0.0),
+              noise=0.0, clutter=0, sigma=sigma)
+    scene, box, truth = match3d_scene(template_size=24, **kw)
+    dt = scene.data.dtype
+    R0 = rotation_zyx((start_offset_deg, 0.0, 0.0)) @ truth["R"]
+    one = jnp.ones((), dt)
+    init = Match3D(jnp.asarray(R0, dt), jnp.asarray(truth["t"], dt), one, jnp.asarray(True), jnp.asarray(0, jnp.int32))
+    m = ops.lm_rotation_z3d(scene, box, init=init)
+    c = jnp.full(3, 11.5, dt)
+    return {"error_deg": _rot_err_deg(np.asarray(m.R), truth["R"]),
+            "centre_error": float(np.linalg.norm(np.asarray(m.apply(c)) - truth["centre"]))}
