@@ -209,3 +209,24 @@ def lm_rotation_floor(seed: int = 0, sigma: float = 1.0, start_offset_deg: float
     c = jnp.full(3, 11.5, dt)
     return {"error_deg": _rot_err_deg(np.asarray(m.R), truth["R"]),
             "centre_error": float(np.linalg.norm(np.asarray(m.apply(c)) - truth["centre"]))}
+
+
+def translation_floor(seed: int = 0, sigma: float = 1.0) -> dict:
+    """The ``ncc3d`` column's clean voxel scene (no clutter, no noise; seeds ``100 + seed`` as
+    :func:`fsjax.synth.run_grid_cell`), scene and template blurred by ``sigma`` (the grid's 1.0): the centre
+    error of ``ncc3d``'s Newton peak (``newton``) and of :func:`fsjax.ops.lk_translation3d` started from the
+    TRUE position (``lk_from_truth``: the least-squares minimum of the data, the floor any sub-voxel step
+    on these volumes meets)."""
+    from .. import ops
+
+    rng = np.random.default_rng(100 + seed)
+    scene, tpl, truth = match3d_scene(shift=rng.uniform(-5, 5, 3), seed=seed, template_size=24, structure="voxel",
+                                      noise=0.0, clutter=0, sigma=sigma)
+    dt = scene.data.dtype
+    c = np.full(3, 11.5)
+    m = ops.ncc3d(scene, tpl)
+    init = Match3D(jnp.eye(3, dtype=dt), jnp.asarray(truth["t"], dt), jnp.ones((), dt), jnp.asarray(True),
+                   jnp.asarray(0, jnp.int32))
+    lk = ops.lk_translation3d(scene, tpl, init=init)
+    return {"newton": float(np.linalg.norm(np.asarray(m.t) + c - truth["centre"])),
+            "lk_from_truth": float(np.linalg.norm(np.asarray(lk.t) + c - truth["centre"]))}
