@@ -22,11 +22,23 @@ from ..types import Depth, Gaussians, Mesh, Points, Volume
 from .global_reg import DESCRIPTORS, GlobalResult, global_registration
 from .icp import ICPResult, icp
 
-__all__ = ["register_cross", "CROSS_METHODS"]
+__all__ = ["register_cross", "CROSS_METHODS", "CROSS_KINDS"]
 
 CROSS_METHODS = (*DESCRIPTORS, "icp")
-_KINDS = (Points, Mesh, Depth, Volume, Gaussians)
+# the structure names of the matching grid (docs/matching_grid.md's rows) and the sort each one is
+CROSS_KINDS = {"points": Points, "mesh": Mesh, "depth": Depth, "voxel": Volume, "gaussians": Gaussians}
+_KINDS = tuple(CROSS_KINDS.values())
 _BUCKET = 4096
+
+
+def _check_kind(fn: str, name: str, x: Any, kind: str | None) -> None:
+    """An explicit kind must name the argument's sort (the sort decides; the string is a check)."""
+    if kind is None:
+        return
+    k = check_choice(fn, f"{name}_kind", kind, tuple(CROSS_KINDS))
+    if not isinstance(x, CROSS_KINDS[k]):
+        raise TypeError(f"{fn}: argument '{name}_kind' is {k!r} ({CROSS_KINDS[k].__name__}) but argument '{name}' is "
+                        f"{type(x).__name__}")
 
 
 def _as_points(fn: str, name: str, x: Any, n: int, level: float, seed: int) -> Points:
@@ -50,6 +62,8 @@ def register_cross(
     *,
     voxel: float,
     method: str = "fpfh",
+    source_kind: str | None = None,
+    target_kind: str | None = None,
     key: jax.Array | None = None,
     radius: float | None = None,
     distance: float | None = None,
@@ -72,6 +86,12 @@ def register_cross(
             (cloud units; about 1/50 of the object's size).
         method: ``"fpfh"``, ``"spin"`` or ``"shot"`` (descriptors + RANSAC, no start needed), or
             ``"icp"`` (from ``init_R``/``init_t``, default identity).
+        source_kind, target_kind: optional names of the structures (``"points"``, ``"mesh"``,
+            ``"depth"``, ``"voxel"``, ``"gaussians"``: the grid's rows, :data:`CROSS_KINDS`), the
+            issue's ``register_cross(src, src_kind, dst, dst_kind, method)`` as keywords. The sort
+            decides how a structure is read, so a kind only checks it: a kind that does not name
+            the argument's sort raises ``TypeError`` naming both (a mesh passed where the caller
+            meant a scan is refused rather than registered), an unknown kind ``ValueError``.
         key: PRNG key of RANSAC (default ``jax.random.key(0)``).
         radius: descriptor support radius (default ``5 voxel``).
         distance: RANSAC inlier distance and half the ICP gate (default ``1.5 voxel``).
@@ -105,6 +125,8 @@ def register_cross(
         (True, True)
     """
     fn = "register_cross"
+    _check_kind(fn, "source", source, source_kind)
+    _check_kind(fn, "target", target, target_kind)
     check_choice(fn, "method", method, CROSS_METHODS)
     check_positive(fn, "voxel", voxel)
     check_range(fn, "overlap", overlap, 0.0, 1.0, lo_open=True)

@@ -48,6 +48,8 @@ from .match3d._pyramid3d import *  # noqa: F403
 from .match3d._refine3d import *  # noqa: F403
 from .match3d._shape3d import *  # noqa: F403
 from .match3d._shapeindex3d import *  # noqa: F403
+from .match3d._shaperot3d import *  # noqa: F403
+from .match3d._sirot3d import *  # noqa: F403
 from .match3d._shdesc import *  # noqa: F403
 from .match3d._transforms import *  # noqa: F403
 from .matching._correlation import *  # noqa: F403

@@ -30,6 +30,7 @@ from ._match3d import run_grid_cell as run_grid_cell
 from ._match3d_depth import MATCH3D_DEPTH_CELL_TOL as MATCH3D_DEPTH_CELL_TOL
 from ._match3d_depth import MATCH3D_DEPTH_METHODS as MATCH3D_DEPTH_METHODS
 from ._match3d_depth import MATCH3D_DEPTH_NOT_APPLICABLE as MATCH3D_DEPTH_NOT_APPLICABLE
+from ._match3d_depth import MATCH3D_DEPTH_ONLY_METHODS as MATCH3D_DEPTH_ONLY_METHODS
 from ._match3d_depth import MATCH3D_DEPTH_SCALE_TOL as MATCH3D_DEPTH_SCALE_TOL
 from ._match3d_depth import match3d_depth_scene as match3d_depth_scene
 from ._match3d_depth import run_depth_cell as run_depth_cell

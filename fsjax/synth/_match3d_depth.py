@@ -47,7 +47,7 @@ import numpy as np
 from ..types import Camera, Depth, Match3D, Mesh
 from ._match3d import _clutter, _rot_err_deg, rotation_zyx, timed_call
 
-__all__ = ["MATCH3D_DEPTH_CELL_TOL", "MATCH3D_DEPTH_SCALE_TOL", "MATCH3D_DEPTH_NOT_APPLICABLE", "MATCH3D_DEPTH_METHODS", "match3d_depth_scene", "depth_to_grid", "run_depth_cell"]
+__all__ = ["MATCH3D_DEPTH_ONLY_METHODS", "MATCH3D_DEPTH_CELL_TOL", "MATCH3D_DEPTH_SCALE_TOL", "MATCH3D_DEPTH_NOT_APPLICABLE", "MATCH3D_DEPTH_METHODS", "match3d_depth_scene", "depth_to_grid", "run_depth_cell"]
 
 CAM_DIST = 300.0  # voxels from the camera to the grid centre along +z
 CAM_F = 1000.0  # pixels: a pixel covers CAM_DIST / CAM_F = 0.3 voxel at the grid centre
@@ -56,7 +56,22 @@ SIZE, TS = 48, 24
 
 MATCH3D_DEPTH_METHODS = ("phase_correlation3d", "ncc3d", "ncc3d+lk_translation3d", "lm_translation_scale3d", "lm_rotation_z3d",
                  "moments_pose3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d", "chamfer3d",
-                         "ncc3d_pyramid", "shape_locate3d", "generalised_hough3d", "shape_index_locate3d")
+                         "ncc3d_pyramid", "shape_locate3d", "generalised_hough3d", "shape_index_locate3d",
+                         "chamfer_rotation_z3d", "shape_rotation_z3d", "shape_index_rotation_z3d",
+                         "depth_to_tsdf+chamfer3d")
+
+# the turned columns (the Fourier-Mellin column's scenes, the 24^3 template view) and their unturned nulls
+_UNTURNED = {"chamfer_rotation_z3d": "chamfer3d", "shape_rotation_z3d": "shape_locate3d",
+             "shape_index_rotation_z3d": "shape_index_locate3d"}
+
+# columns of the depth row alone (the other rows have no camera, hence no lines of sight), with the reason
+MATCH3D_DEPTH_ONLY_METHODS = {
+    "depth_to_tsdf+chamfer3d": "not applicable: the TSDF is the signed distance along a camera's lines of sight; "
+    "only the depth row has a camera (a volume's signed distance is volume_to_sdf)",
+}
+# the depth -> TSDF route (fsjax.ops.depth_to_tsdf): truncation in voxels, and the level of the surface band
+# 1 - |tsdf| > 0.5 (within half the truncation of the seen surface along the ray) that chamfer3d matches
+TSDF_TRUNCATION, TSDF_LEVEL = 2.0, 0.5
 
 MATCH3D_DEPTH_NOT_APPLICABLE = {
     "moments_pose3d": "not applicable: a view sees one side; after an arbitrary rotation the scene shows another part "
@@ -72,7 +87,20 @@ MATCH3D_DEPTH_CELL_TOL = {"phase_correlation3d": 0.15, "ncc3d": 0.25, "ncc3d+lk_
                   "fourier_mellin_z3d+lm_rotation_z3d": 0.7, "chamfer3d": 0.25, "ncc3d_pyramid": 0.25,
                   # measured max over seeds 0-2: 0.030, 0.091, 0.060 (bunny scores 0.98-0.99, 0.79-0.92, 0.92-0.96;
                   # the scenes without it 0.38-0.57, 0.00, 0.36-0.43)
-                  "shape_locate3d": 0.06, "generalised_hough3d": 0.15, "shape_index_locate3d": 0.12}
+                  "shape_locate3d": 0.06, "generalised_hough3d": 0.15, "shape_index_locate3d": 0.12,
+                  # degrees: measured 0.58 / 0.14 / 1.60 over seeds 0-2 (centres 0.02-0.07 voxel; least mean distance
+                  # 0.09-0.11, the scenes without the bunny 0.96-1.57); a view loses the far half's edges
+                  "chamfer_rotation_z3d": 3.0,
+                  # degrees: 0.75 / 0.36 / 0.52 over seeds 0-2 (centres 0.01-0.03 voxel; bunny 0.98-0.99, the scenes
+                  # without it 0.47-0.63; the unturned shape_locate3d refuses seeds 0 and 2, places seed 1 1.09 off)
+                  "shape_rotation_z3d": 1.5,
+                  # degrees: 0.58 / 0.13 / 0.12 over seeds 0-2 (centres 0.09-0.12 voxel; bunny 0.90-0.95, the scenes
+                  # without it 0.43-0.48; the unturned shape_index_locate3d refuses seeds 0 and 2, seed 1 1.37 off)
+                  "shape_index_rotation_z3d": 1.2,
+                  # voxels: 0.068 / 0.037 / 0.060 over seeds 0-2 (least mean distance 0.15-0.23, the scenes without
+                  # the bunny 1.61-2.07; truncation 1.5 / 3: 0.055 / 0.019 / 0.066, 0.117 / 0.093 / 0.059; the points
+                  # route's chamfer3d on the same scenes 0.124 / 0.039 / 0.031)
+                  "depth_to_tsdf+chamfer3d": 0.15}
 # the scale column's scale error bound (a scaled object's view has the template's point density per area, not
 # a scaled copy of its grid: 0.013-0.032 measured)
 MATCH3D_DEPTH_SCALE_TOL = 0.05
@@ -214,6 +242,17 @@ def depth_to_grid(d: Depth, size: int, sigma: float = 1.0) -> Any:
     return gaussian3d(to_voxel(d, (1.0, 1.0, 1.0), shape=(size, size, size)), sigma=sigma)
 
 
+def depth_to_band(d: Depth, size: int) -> Any:
+    """The TSDF route: :func:`fsjax.ops.depth_to_tsdf` on a ``size^3`` grid of spacing 1 (truncation
+    ``TSDF_TRUNCATION``), as the surface band ``1 - |tsdf|`` (1 on the seen surface, 0 beyond the truncation
+    along the ray, in empty space, out of view and behind the surface)."""
+    from ..ops import depth_to_tsdf
+    from ..types import Volume
+
+    v = depth_to_tsdf(d, shape=(size, size, size), truncation=TSDF_TRUNCATION)
+    return Volume(1.0 - jnp.abs(v.data), spacing=v.spacing)
+
+
 def _centre_of_mass(vol: Any) -> np.ndarray:
     w = np.clip(np.asarray(vol.data), 0, None)
     k, i, j = np.mgrid[0:w.shape[0], 0:w.shape[1], 0:w.shape[2]]
@@ -231,7 +270,12 @@ def run_depth_cell(method: str, *, seed: int = 0, with_object: bool = True, dtyp
     +-3 degrees about z (``lm_rotation_z3d``, started from NCC's position at angle 0); scaled by 1.08
     (``lm_translation_scale3d``); turned by a random angle about z (Fourier-Mellin, template a full-size
     view of the unturned bunny at the grid centre); ``phase_correlation3d`` compares the scene with that
-    full-size view; ``chamfer3d`` at 0.3 of the template's peak; ``shape_locate3d`` and
+    full-size view; ``chamfer3d`` at 0.3 of the template's peak; ``depth_to_tsdf+chamfer3d`` the ``chamfer3d``
+    column's scenes through the TSDF route instead (:func:`depth_to_band`, level ``TSDF_LEVEL``;
+    ``points_route``: the ``chamfer3d`` column's error on the same scene, beside it); ``chamfer_rotation_z3d`` the same level on the
+    Fourier-Mellin column's scenes with the 24^3 template view (``null_centre``: the unturned ``chamfer3d``'s centre
+    error, NaN where it refuses); ``shape_rotation_z3d`` with its defaults on those scenes (``null_centre`` of the
+    unturned ``shape_locate3d``), ``shape_index_rotation_z3d`` likewise (of ``shape_index_locate3d``); ``shape_locate3d`` and
     ``generalised_hough3d`` with their defaults on the ``ncc3d`` column's scenes (the partial view of the
     bunny against the template's view; the Hough column reports its best instance). ``clean``: no clutter.
     """
@@ -242,17 +286,21 @@ def run_depth_cell(method: str, *, seed: int = 0, with_object: bool = True, dtyp
         raise ValueError(f"run_depth_cell: argument 'method' must be a built column of the depth row; got {method!r}"
                          + (f" ({MATCH3D_DEPTH_NOT_APPLICABLE[method]})" if method in MATCH3D_DEPTH_NOT_APPLICABLE else ""))
     fm = method.startswith("fourier_mellin")
-    rng = np.random.default_rng((200 if fm else 100) + seed)
+    # the Fourier-Mellin column's scenes, the 24^3 box as template
+    crot = method in _UNTURNED
+    rng = np.random.default_rng((200 if fm or crot else 100) + seed)
     kw = dict(shift=rng.uniform(-5, 5, 3), seed=seed, with_object=with_object, dtype=dtype, clutter=0 if clean else 6)
     if method == "lm_rotation_z3d":
         kw["angles_deg"] = (3.0 if seed % 2 == 0 else -3.0, 0.0, 0.0)
     if method == "lm_translation_scale3d":
         kw["scale"] = 1.08
-    if fm:
+    if fm or crot:
         kw["angles_deg"] = (rng.uniform(-180, 180), 0.0, 0.0)
     full = method == "phase_correlation3d" or fm
     sc_d, tp_d, truth = match3d_depth_scene(template_size=None if full else TS, **kw)
-    scene, tpl = depth_to_grid(sc_d, SIZE), depth_to_grid(tp_d, SIZE if full else TS)
+    tsdf = method == "depth_to_tsdf+chamfer3d"
+    to_grid = depth_to_band if tsdf else depth_to_grid
+    scene, tpl = to_grid(sc_d, SIZE), to_grid(tp_d, SIZE if full else TS)
     box = depth_to_grid(match3d_depth_scene(template_size=TS, **kw)[1], TS) if method.endswith("+lm_rotation_z3d") else None
     c_full, c_box = np.full(3, (SIZE - 1) / 2.0), np.full(3, (TS - 1) / 2.0)
     if method == "ncc3d+lk_translation3d":
@@ -261,11 +309,14 @@ def run_depth_cell(method: str, *, seed: int = 0, with_object: bool = True, dtyp
     elif method == "phase_correlation3d":
         def call():
             return ops.phase_correlation3d(scene, tpl, min_score=PC_MIN_SCORE_NOISE_FREE)
-    elif method == "chamfer3d":
+    elif tsdf:
+        def call():
+            return ops.chamfer3d(scene, tpl, level=TSDF_LEVEL)
+    elif method in ("chamfer3d", "chamfer_rotation_z3d"):
         level = 0.3 * float(jnp.max(tpl.data))
 
         def call():
-            return ops.chamfer3d(scene, tpl, level=level)
+            return getattr(ops, method)(scene, tpl, level=level)
     elif box is not None:
         def call():
             m = ops.fourier_mellin_z3d(scene, tpl)
@@ -284,15 +335,23 @@ def run_depth_cell(method: str, *, seed: int = 0, with_object: bool = True, dtyp
     out = {"valid": bool(m.valid), "score": float(m.score), "reason": str(m.message), "match": m,
            "time_first_s": t_first, "time_s": t_run}
     centre = np.asarray(m.apply(jnp.asarray(c_t, m.t.dtype)))
-    if method in ("lm_rotation_z3d",) or fm:
+    if method in ("lm_rotation_z3d",) or fm or crot:
         out["error"] = _rot_err_deg(np.asarray(m.R), truth["R"]) if out["valid"] else float("nan")
         out["null"] = _rot_err_deg(np.eye(3), truth["R"])
         out["centre_error"] = float(np.linalg.norm(centre - truth["centre"]))
         if m0 is not None:
             out["start_error"] = _rot_err_deg(np.asarray(m0.R), truth["R"]) if bool(m0.valid) else float("nan")
+        if crot:  # beside the identity, the unturned method on the same scene (NaN where it refuses)
+            mu = (ops.chamfer3d(scene, tpl, level=0.3 * float(jnp.max(tpl.data))) if method == "chamfer_rotation_z3d"
+                  else getattr(ops, _UNTURNED[method])(scene, tpl))
+            out["null_centre"] = (float(np.linalg.norm(np.asarray(mu.apply(jnp.asarray(c_box, mu.t.dtype)))
+                                                       - truth["centre"])) if bool(mu.valid) else float("nan"))
         return out
     out["error"] = float(np.linalg.norm(centre - truth["centre"]))
     out["null"] = float(np.linalg.norm(_centre_of_mass(scene) - truth["centre"]))
     if method == "lm_translation_scale3d":
         out["scale_error"] = abs(float(m.scale) - truth["scale"])
+    if tsdf:  # beside it, the depth -> points -> voxel route's chamfer3d on the same scene
+        out["points_route"] = run_depth_cell("chamfer3d", seed=seed, with_object=with_object, dtype=dtype,
+                                             clean=clean)["error"]
     return out

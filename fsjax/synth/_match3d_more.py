@@ -38,8 +38,6 @@ MATCH3D_MORE_METHODS = ("fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3
 MATCH3D_MORE_NOT_YET = {
     **{("depth", m): "the depth row: fsjax/synth/_match3d_depth.py (run_depth_cell, tests/ops/test_match3d_depth.py)"
        for m in MATCH3D_MORE_METHODS},
-    ("depth", "chamfer_rotation_z3d"): "not yet: the depth row has no chamfer_rotation_z3d cell "
-    "(fsjax/synth/_match3d_depth.py)",
 }
 
 # mesh cells whose scene is brought to the template's mass per unit area (fsjax.synth._match3d.MESH_AREA_DENSITY;
@@ -188,3 +186,47 @@ def _chamfer_rot_cell(structure, *, seed, with_object, dtype, timing, clean):
     out["null_centre"] = (float(np.linalg.norm(np.asarray(m0.apply(jnp.asarray(c_t, m0.t.dtype))) - truth["centre"]))
                           if bool(m0.valid) else float("nan"))
     return out
+
+
+def lm_rotation_floor(seed: int = 0, sigma: float = 1.0, start_offset_deg: float = 0.0) -> dict:
+    """Where :func:`fsjax.ops.lm_rotation_z3d` ends on the clean voxel scene of the refined Fourier-Mellin
+    column (no clutter, no noise; seeds ``200 + seed`` as :func:`run_more_cell`) when started from the TRUE
+    pose turned by ``start_offset_deg`` about z, with scene and template blurred by ``sigma`` (the grid's 1.0):
+    ``{"error_deg", "centre_error"}``. The same end from the truth and from a start off it says the error is
+    the cost's minimum (the data's), not the start's or the solver's."""
+    from .. import ops
+    from ._match3d import rotation_zyx
+
+    rng = np.random.default_rng(200 + seed)
+    kw = dict(shift=rng.uniform(-5, 5, 3), seed=seed, structure="voxel", angles_deg=(rng.uniform(-180, 180), 0.0, 0.0),
+              noise=0.0, clutter=0, sigma=sigma)
+    scene, box, truth = match3d_scene(template_size=24, **kw)
+    dt = scene.data.dtype
+    R0 = rotation_zyx((start_offset_deg, 0.0, 0.0)) @ truth["R"]
+    one = jnp.ones((), dt)
+    init = Match3D(jnp.asarray(R0, dt), jnp.asarray(truth["t"], dt), one, jnp.asarray(True), jnp.asarray(0, jnp.int32))
+    m = ops.lm_rotation_z3d(scene, box, init=init)
+    c = jnp.full(3, 11.5, dt)
+    return {"error_deg": _rot_err_deg(np.asarray(m.R), truth["R"]),
+            "centre_error": float(np.linalg.norm(np.asarray(m.apply(c)) - truth["centre"]))}
+
+
+def translation_floor(seed: int = 0, sigma: float = 1.0) -> dict:
+    """The ``ncc3d`` column's clean voxel scene (no clutter, no noise; seeds ``100 + seed`` as
+    :func:`fsjax.synth.run_grid_cell`), scene and template blurred by ``sigma`` (the grid's 1.0): the centre
+    error of ``ncc3d``'s Newton peak (``newton``) and of :func:`fsjax.ops.lk_translation3d` started from the
+    TRUE position (``lk_from_truth``: the least-squares minimum of the data, the floor any sub-voxel step
+    on these volumes meets)."""
+    from .. import ops
+
+    rng = np.random.default_rng(100 + seed)
+    scene, tpl, truth = match3d_scene(shift=rng.uniform(-5, 5, 3), seed=seed, template_size=24, structure="voxel",
+                                      noise=0.0, clutter=0, sigma=sigma)
+    dt = scene.data.dtype
+    c = np.full(3, 11.5)
+    m = ops.ncc3d(scene, tpl)
+    init = Match3D(jnp.eye(3, dtype=dt), jnp.asarray(truth["t"], dt), jnp.ones((), dt), jnp.asarray(True),
+                   jnp.asarray(0, jnp.int32))
+    lk = ops.lk_translation3d(scene, tpl, init=init)
+    return {"newton": float(np.linalg.norm(np.asarray(m.t) + c - truth["centre"])),
+            "lk_from_truth": float(np.linalg.norm(np.asarray(lk.t) + c - truth["centre"]))}

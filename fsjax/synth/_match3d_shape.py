@@ -4,7 +4,9 @@ same scenes and conventions as :func:`fsjax.synth.run_grid_cell`): shape-based m
 (:func:`fsjax.ops.generalised_hough3d`) and curvature matching on the shape index
 (:func:`fsjax.ops.shape_index_locate3d`, the second derivatives).
 
-Both columns run on the scenes of the ``ncc3d`` cell (same seeds: the bunny moved by +-5 voxels
+``shape_rotation_z3d`` (:func:`fsjax.ops.shape_rotation_z3d`, shape-based matching over turns about z)
+runs on the Fourier-Mellin column's scenes (a random turn in [-180, 180)); the others run on the scenes of
+the ``ncc3d`` cell (same seeds: the bunny moved by +-5 voxels
 among six clutter shells, 1 % noise on voxel scenes, a 24^3 template), each row brought onto the
 48^3 grid by the row's transform (:func:`fsjax.synth._match3d._on_grid`). The null is the scene's
 centre of mass. The last 12 scenes are kept (the two columns of a row, and the tests, share them).
@@ -22,7 +24,10 @@ from ._match3d import _on_grid, com_null, match3d_scene, timed_call
 
 __all__ = ["MATCH3D_SHAPE_METHODS", "MATCH3D_SHAPE_NOT_YET", "MATCH3D_SHAPE_CELL_TOL", "run_shape_cell"]
 
-MATCH3D_SHAPE_METHODS = ("shape_locate3d", "generalised_hough3d", "shape_index_locate3d")
+MATCH3D_SHAPE_METHODS = ("shape_locate3d", "generalised_hough3d", "shape_index_locate3d", "shape_rotation_z3d",
+                         "shape_index_rotation_z3d")
+# the turned columns and their unturned nulls
+_UNTURNED = {"shape_rotation_z3d": "shape_locate3d", "shape_index_rotation_z3d": "shape_index_locate3d"}
 
 # the depth row's cells of these columns are built in fsjax/synth/_match3d_depth.py (run_depth_cell)
 MATCH3D_SHAPE_NOT_YET = {
@@ -39,6 +44,17 @@ MATCH3D_SHAPE_CELL_TOL = {  # measured max over seeds 0-2 in the comments
     # curvature matching (fsjax.ops.shape_index_locate3d), the same scenes
     ("voxel", "shape_index_locate3d"): 0.15, ("points", "shape_index_locate3d"): 0.3,  # 0.073, 0.161
     ("mesh", "shape_index_locate3d"): 0.25, ("gaussians", "shape_index_locate3d"): 0.4,  # 0.147, 0.250
+    # shape_rotation_z3d (degrees; the centre within 0.5 voxel), the Fourier-Mellin column's scenes: about twice the
+    # largest over seeds 0-2 (voxel 0.58 / 0.31 / 0.12, points 1.05 / 0.33 / 0.11, mesh 0.54 / 0.50 / 0.12,
+    # Gaussians 0.88 / 0.06 / 0.12; centres 0.01-0.16 voxel; the bunny scores 0.975-0.994, the scenes without it
+    # 0.45-0.67; the unturned shape_locate3d refuses every turned bunny)
+    ("voxel", "shape_rotation_z3d"): 1.2, ("points", "shape_rotation_z3d"): 2.0,
+    ("mesh", "shape_rotation_z3d"): 1.1, ("gaussians", "shape_rotation_z3d"): 1.7,
+    # shape_index_rotation_z3d (degrees), the same scenes: about twice the largest over seeds 0-2 (voxel
+    # 0.92 / 0.06 / 0.46, points 1.06 / 0.07 / 0.12, mesh 0.58 / 0.52 / 0.12, Gaussians 0.76 / 0.21 / 0.12;
+    # centres 0.02-0.25 voxel; the bunny scores 0.86-0.93, the scenes without it 0.37-0.53)
+    ("voxel", "shape_index_rotation_z3d"): 1.8, ("points", "shape_index_rotation_z3d"): 2.0,
+    ("mesh", "shape_index_rotation_z3d"): 1.2, ("gaussians", "shape_index_rotation_z3d"): 1.5,
 }
 
 _SCENES: dict = {}
@@ -63,11 +79,14 @@ def _scene(structure: str, seed: int, with_object: bool, dtype: Any, clean: bool
 def run_shape_cell(structure: str, method: str, *, seed: int = 0, with_object: bool = True, dtype: Any = None,
                    timing: bool = False, clean: bool = False) -> dict:
     """One cell of the gradient-direction columns; the same dict as :func:`fsjax.synth.run_grid_cell`
-    (``error`` and ``null`` in voxels; for ``generalised_hough3d`` its best instance)."""
+    (``error`` and ``null`` in voxels; for ``generalised_hough3d`` its best instance; for
+    ``shape_rotation_z3d`` degrees, with ``centre_error`` in voxels and ``null_centre``)."""
     from .. import ops
 
     if (structure, method) in MATCH3D_SHAPE_NOT_YET or method not in MATCH3D_SHAPE_METHODS:
         raise ValueError(f"run_shape_cell: cell ({structure}, {method}) is not a built cell of this module")
+    if method in _UNTURNED:
+        return _shape_rot_cell(structure, method, seed=seed, with_object=with_object, dtype=dtype, timing=timing, clean=clean)
     scene, tpl, truth = _scene(structure, seed, with_object, dtype, clean)
     ts = 24
     fn = getattr(ops, method)
@@ -82,4 +101,39 @@ def run_shape_cell(structure: str, method: str, *, seed: int = 0, with_object: b
     c_t = np.full(3, (ts - 1) / 2.0)
     out["error"] = float(np.linalg.norm(np.asarray(best.apply(jnp.asarray(c_t, best.t.dtype))) - truth["centre"]))
     out["null"] = com_null(scene.data, truth["centre"])
+    return out
+
+
+def _shape_rot_cell(structure, method, *, seed, with_object, dtype, timing, clean):
+    """The shape-based column with a turn about z: the Fourier-Mellin column's scenes (the bunny turned by a
+    random angle in [-180, 180) about z and moved, seeds ``200 + seed``, the shift drawn first), the unturned
+    bunny's 24^3 box as template, each row onto the grid as the other gradient columns (no density matching:
+    the score ignores a gain). ``error`` the rotation error in degrees, ``null`` the identity rotation's;
+    ``null_centre`` the unturned method's centre error (:func:`fsjax.ops.shape_locate3d`,
+    :func:`fsjax.ops.shape_index_locate3d`; NaN where it refuses)."""
+    from .. import ops
+    from ._match3d import _rot_err_deg
+
+    rng = np.random.default_rng(200 + seed)
+    shift = rng.uniform(-5, 5, 3)
+    scene, tpl, truth = match3d_scene(shift=shift, angles_deg=(rng.uniform(-180, 180), 0.0, 0.0), seed=seed,
+                                      with_object=with_object, dtype=dtype, template_size=24, structure=structure,
+                                      noise=0.01 if structure == "voxel" and not clean else 0.0,
+                                      clutter=0 if clean else 6)
+    if structure != "voxel":
+        scene, tpl = _on_grid(scene, 48, 1.0), _on_grid(tpl, 24, 1.0)
+
+    def call():
+        return getattr(ops, method)(scene, tpl)
+
+    m, t_first, t_run = timed_call(call, timing)
+    c_t = np.full(3, 11.5)
+    out = {"valid": bool(m.valid), "score": float(m.score), "reason": str(m.message), "match": m,
+           "time_first_s": t_first, "time_s": t_run}
+    out["error"] = _rot_err_deg(np.asarray(m.R), truth["R"]) if out["valid"] else float("nan")
+    out["null"] = _rot_err_deg(np.eye(3), truth["R"])
+    out["centre_error"] = float(np.linalg.norm(np.asarray(m.apply(jnp.asarray(c_t, m.t.dtype))) - truth["centre"]))
+    m0 = getattr(ops, _UNTURNED[method])(scene, tpl)
+    out["null_centre"] = (float(np.linalg.norm(np.asarray(m0.apply(jnp.asarray(c_t, m0.t.dtype))) - truth["centre"]))
+                          if bool(m0.valid) else float("nan"))
     return out

@@ -51,3 +51,20 @@ def test_partial_scan_and_arguments():
         register_cross(pair["mesh"], fsjax.Points(jnp.asarray(pair["scan"])), voxel=0.1, method="sift")
     with pytest.raises(ValueError, match="register_cross: argument 'voxel'"):
         register_cross(pair["mesh"], fsjax.Points(jnp.asarray(pair["scan"])), voxel=1e-4, n=5000)
+
+
+def test_explicit_kinds_are_checked_against_the_sorts():
+    """The issue's string kinds, as keywords: a kind naming the argument's sort passes (the call goes
+    on to the next check, here the voxel's), one naming another sort raises TypeError naming the op,
+    the argument and both kinds, an unknown kind raises ValueError listing the kinds."""
+    mesh = fsjax.Mesh(jnp.asarray([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]),
+                      jnp.asarray([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], jnp.int32))
+    pts = fsjax.Points(jnp.asarray(np.random.default_rng(0).uniform(size=(64, 3))))
+    with pytest.raises(ValueError, match="register_cross: argument 'voxel'"):  # the kinds passed
+        register_cross(mesh, pts, voxel=0.0, source_kind="mesh", target_kind="points")
+    with pytest.raises(TypeError, match="register_cross: argument 'source_kind' is 'points' .* 'source' is Mesh"):
+        register_cross(mesh, pts, voxel=0.1, source_kind="points")
+    with pytest.raises(TypeError, match="register_cross: argument 'target_kind' is 'voxel' .* 'target' is Points"):
+        register_cross(mesh, pts, voxel=0.1, target_kind="voxel")
+    with pytest.raises(ValueError, match="register_cross: argument 'target_kind'"):
+        register_cross(mesh, pts, voxel=0.1, target_kind="cloud")

@@ -283,3 +283,19 @@ def test_fuse_to_voxel_mixed_structures():
         ops.fuse_to_voxel([pts], sp, shape=shp, weights=[-1.0])
     with pytest.raises(ValueError, match="fuse_to_voxel: argument 'items'"):
         ops.fuse_to_voxel(pts, sp, shape=shp)
+
+
+@pytest.mark.slow  # ncc3d and lk_translation3d on three clean 48^3 scenes
+def test_clean_scene_sub_voxel_floor_is_the_datas():
+    """Why ncc3d's Newton peak on the clean bunny scene (0.0122 / 0.0255 / 0.0068 voxel, seeds 0-2) does not
+    reach the reference's 0.011 on every seed: the least-squares minimum of the data itself (Lucas-Kanade
+    started from the TRUE position) lies 0.0118 / 0.0174 / 0.0191 voxel off (the bunny splatted at another
+    sub-voxel phase than the template's, then blurred), so no sub-voxel step on these volumes is exact there;
+    Newton is within 0.01 voxel of that floor on every seed."""
+    from fsjax.synth._match3d_more import translation_floor
+
+    r = [translation_floor(seed=k) for k in range(3)]
+    print("\n" + "; ".join(f"seed {k}: newton {x['newton']:.4f}, LK from the truth {x['lk_from_truth']:.4f}"
+                           for k, x in enumerate(r)))
+    assert sum(x["lk_from_truth"] > 0.011 for x in r) >= 2
+    assert all(x["newton"] < x["lk_from_truth"] + 0.01 for x in r)

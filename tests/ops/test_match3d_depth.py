@@ -24,7 +24,9 @@ COLS = [m for m in MATCH3D_DEPTH_METHODS if m not in MATCH3D_DEPTH_NOT_APPLICABL
 # the LM and Fourier-Mellin columns compile 7-11 s each on their own (shared with tests/ops/test_match3d.py
 # and test_match3d_fm.py in a full run): marked slow
 SLOW = ("lm_translation_scale3d", "lm_rotation_z3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d")
-ROT = ("lm_rotation_z3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d")
+ROT = ("lm_rotation_z3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d", "chamfer_rotation_z3d")
+# chamfer_rotation_z3d: its 48^3 / 24^3 program (shared with tests/ops/test_match3d_fm.py's slow cells)
+SLOW = SLOW + ("chamfer_rotation_z3d",)
 
 
 def test_depth_row_columns_are_all_accounted_for():
@@ -65,6 +67,8 @@ def test_depth_cell(method):
         assert r["scale_error"] < MATCH3D_DEPTH_SCALE_TOL
     if "start_error" in r:  # the refinement beats its Fourier-Mellin start
         assert r["error"] < r["start_error"]
+    if "null_centre" in r:  # the unturned chamfer3d refuses the turned bunny or places it worse
+        assert not r["null_centre"] <= r["centre_error"]
     r0 = run_depth_cell(method, with_object=False)
     assert not r0["valid"] and ("not found" in r0["reason"] or "invalid input" in r0["reason"])
 

@@ -278,3 +278,16 @@ def test_chamfer_rotation_z3d_recovers_a_turn_the_unturned_chamfer_cannot():
                                  fsjax.Volume(tpl.data, spacing=(1.0, 2.0, 1.0)))
     with pytest.raises(ValueError, match="chamfer_rotation_z3d: argument 'n_angles'"):
         ops.chamfer_rotation_z3d(scene, tpl, n_angles=2)
+
+
+@pytest.mark.slow  # lm_rotation_z3d's program (shared with the refined cells in a full run)
+def test_lm_rotation_z3d_seed0_floor_is_the_data_not_the_start():
+    """Why the clean seed 0 ends at 0.024 degree, above the reference's 0.017: lm_rotation_z3d started from
+    the TRUE pose and from 0.5 degree off it ends at the same angle (0.0239, the cost's minimum on the
+    splatted, blurred, resampled volumes), so neither the Fourier-Mellin start nor the solver is the cause."""
+    from fsjax.synth._match3d_more import lm_rotation_floor
+
+    a, b = lm_rotation_floor(seed=0), lm_rotation_floor(seed=0, start_offset_deg=0.5)
+    print(f"\nLM from the truth {a['error_deg']:.4f} deg, from 0.5 deg off {b['error_deg']:.4f} deg")
+    assert abs(a["error_deg"] - b["error_deg"]) < 1e-4
+    assert 0.017 < a["error_deg"] < 0.03 and a["centre_error"] < 0.05

@@ -3,7 +3,7 @@
 The 2-D method (:func:`fsjax.ops.shape_locate`; Steger 2001, 2002) scores a pose by how well the
 template's edge directions agree with the image's gradient directions at the posed model points.
 Here it is taken to 3-D for translations (no rotation search; rotate first, e.g. with
-:func:`fsjax.ops.fourier_mellin_z3d`):
+:func:`fsjax.ops.fourier_mellin_z3d`, or search turns about z with :func:`fsjax.ops.shape_rotation_z3d`):
 
 * **Model.** The template is smoothed by a Gaussian of ``sigma`` (the spacing's unit, boundary
   ``"nearest"``) and differentiated by central differences (physical units per axis); its
@@ -180,7 +180,7 @@ def shape_locate3d(scene: Volume, template: Volume, /, *, min_score: float = 0.7
     :func:`ncc3d`'s Newton peak. Edges, not intensities: the score does not change under a gain
     or offset of the scene, and (``polarity="global"``, the default) not under a contrast
     reversal either; an occluded part of the object lowers it by about the hidden fraction of the
-    model points. Translation only.
+    model points. Translation only (turns about z: :func:`shape_rotation_z3d`).
 
     Args:
       scene: the scene ``(D, H, W)``.

@@ -136,7 +136,7 @@ def shape_index_locate3d(scene: Volume, template: Volume, /, *, min_score: float
     the codes, each scene voxel weighted by its gradient strength (``|g| / max(|g|, min_contrast
     max|g|)``); all placements by ``bins`` FFT correlations, the best refined by :func:`ncc3d`'s
     Newton peak. Invariant to a gain and an offset of the scene; not to a contrast reversal (it
-    turns caps into cups). Translation only.
+    turns caps into cups). Translation only (turns about z: :func:`shape_index_rotation_z3d`).
 
     Args:
       scene: the scene ``(D, H, W)``.
