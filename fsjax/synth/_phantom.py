@@ -33,12 +33,11 @@ _LABEL = {"water": 1, "bone": 2, "aluminium": 3}
 
 def _mu_steps():
     """Disc list with the attenuation *increment* each one adds (superposition)."""
-    out, base = [], 0.0
+    out = []
     for mat, x, y, r in _DISCS:
         mu = CT_MATERIALS[mat]
         inc = mu if mat == "water" else mu - CT_MATERIALS["water"]
         out.append((inc, x, y, r))
-        base = mu
     return out
 
 

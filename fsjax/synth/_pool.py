@@ -204,7 +204,7 @@ def icosphere(subdivisions: int = 1, radius: float = 1.0) -> tuple[np.ndarray, n
     for _ in range(subdivisions):
         cache: dict[tuple[int, int], int] = {}
 
-        def mid(a, b):
+        def mid(a, b, cache=cache):
             key = (min(a, b), max(a, b))
             if key not in cache:
                 m = verts[a] + verts[b]
