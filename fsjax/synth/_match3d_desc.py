@@ -217,20 +217,31 @@ def icp_floor(*, seed: int = 0, n: int = 10000, variants: Any = ICP_FLOOR_VARIAN
     return out
 
 
-def sh_voxel_resolution(seed: int = 0, extent: float = 16.0, noise: float = 0.01) -> float:
-    """The voxel descriptor cell's similarity (the bunny's template vs its copy at the cell's random rotation,
-    no clutter) with the bunny ``extent`` voxels across (the grid's 16; scene ``2 extent + 16`` voxels, template
-    box ``1.25 extent + 4``, samples ``20,000 (extent / 16)^2``: the grid's density per area) and ``noise`` (the
-    grid's 0.01): how far the voxel cell's 0.998 is the voxelisation of a 16-voxel object."""
+def sh_voxel_resolution(seed: int = 0, extent: float = 16.0, noise: float = 0.01, structure: str = "voxel",
+                        n: int | None = None) -> float:
+    """The voxel (or mesh) descriptor cell's similarity (the bunny's template vs its copy at the cell's random
+    rotation, no clutter) with the bunny ``extent`` voxels across (the grid's 16; scene ``2 extent + 16`` voxels,
+    template box ``1.25 extent + 4``, samples ``20,000 (extent / 16)^2``: the grid's density per area) and
+    ``noise`` (the grid's 0.01; voxel scenes only): how far the voxel cell's 0.998 is the voxelisation of a
+    16-voxel object. ``structure="mesh"``: the mesh cell's route instead (the bunny's mesh turned, scene and
+    template each brought onto the grid by ``n`` area-weighted samples, default the grid's density per area,
+    and ``gaussian3d(sigma=1)``)."""
     from .. import ops
+    from ._match3d import _on_grid
 
+    if structure not in ("voxel", "mesh"):
+        raise ValueError(f"sh_voxel_resolution: argument 'structure' must be 'voxel' or 'mesh'; got {structure!r}")
     rng = np.random.default_rng(200 + seed)
     R = rotation_zyx(rng.uniform(-180, 180, 3))
     shift = rng.uniform(-5, 5, 3)
     size, ts = int(2 * extent + 16), int(1.25 * extent + 4)
+    n_grid = int(20000 * (extent / 16.0) ** 2)
     sc, tp, _ = match3d_scene("bunny", size=size, extent=extent, shift=shift, angles_deg=np.degrees(_zyx_angles(R)),
-                              seed=seed, template_size=ts, structure="voxel", noise=noise, clutter=0,
-                              n=int(20000 * (extent / 16.0) ** 2))
+                              seed=seed, template_size=ts, structure=structure,
+                              noise=noise if structure == "voxel" else 0.0, clutter=0, n=n_grid)
+    if structure == "mesh":
+        k = n_grid if n is None else int(n)
+        sc, tp = _on_grid(sc, size, 1.0, n=k), _on_grid(tp, ts, 1.0, n=k)
 
     def desc(x):
         return ops.sh_descriptor3d(x, level=0.05 * float(jnp.max(x.data)))

@@ -205,3 +205,23 @@ def test_voxel_descriptor_cell_floor_is_the_objects_resolution():
     lo, hi = sh_voxel_resolution(seed=0), sh_voxel_resolution(seed=0, extent=32.0)
     print(f"\nvoxel descriptor cell: bunny 16 voxels across {lo:.5f}, 32 across {hi:.5f}")
     assert lo < 0.999 <= hi
+
+
+@pytest.mark.slow  # two more mesh scenes (48^3 and 80^3), their samples on the grid, and their descriptors
+def test_mesh_descriptor_cell_floor_is_the_objects_resolution():
+    """The mesh cell's similarity 0.998 (below the issue's 0.999) is, like the voxel cell's, the grid's
+    resolution of a 16-voxel bunny, not the surface sampling: the same cell (seed 0, reproduced: 0.99841)
+    with 80,000 samples instead of 20,000 stays at 0.99856, with the bunny 32 voxels across (the same
+    samples per unit area) it reaches 0.99939 (measured; seeds 1, 2: 0.99961, 0.99955)."""
+    from fsjax.synth._match3d_desc import sh_voxel_resolution
+
+    cell = run_descriptor_cell("mesh")["similarity"]
+    lo = sh_voxel_resolution(seed=0, structure="mesh")
+    dense = sh_voxel_resolution(seed=0, structure="mesh", n=80000)
+    hi = sh_voxel_resolution(seed=0, structure="mesh", extent=32.0)
+    print(f"\nmesh descriptor cell: {cell:.5f}; 16 voxels across {lo:.5f} (80,000 samples {dense:.5f}), "
+          f"32 across {hi:.5f}")
+    assert lo == cell  # the same scene as the cell's
+    assert lo < 0.999 and dense < 0.999 <= hi
+    with pytest.raises(ValueError, match="sh_voxel_resolution: argument 'structure'"):
+        sh_voxel_resolution(structure="points")
