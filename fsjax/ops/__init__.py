@@ -42,6 +42,7 @@ from .match3d._fft3d import *  # noqa: F403
 from .match3d._fmellin3d import *  # noqa: F403
 from .match3d._gaussvox import *  # noqa: F403
 from .match3d._ghough3d import *  # noqa: F403
+from .match3d._ghoughrot3d import *  # noqa: F403
 from .match3d._hough3d import *  # noqa: F403
 from .match3d._pose3d import *  # noqa: F403
 from .match3d._pyramid3d import *  # noqa: F403
@@ -49,8 +50,8 @@ from .match3d._refine3d import *  # noqa: F403
 from .match3d._shape3d import *  # noqa: F403
 from .match3d._shapeindex3d import *  # noqa: F403
 from .match3d._shaperot3d import *  # noqa: F403
-from .match3d._sirot3d import *  # noqa: F403
 from .match3d._shdesc import *  # noqa: F403
+from .match3d._sirot3d import *  # noqa: F403
 from .match3d._transforms import *  # noqa: F403
 from .matching._correlation import *  # noqa: F403
 from .matching._shape import *  # noqa: F403

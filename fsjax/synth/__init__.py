@@ -50,6 +50,7 @@ from ._match3d_shape import MATCH3D_SHAPE_CELL_TOL as MATCH3D_SHAPE_CELL_TOL
 from ._match3d_shape import MATCH3D_SHAPE_METHODS as MATCH3D_SHAPE_METHODS
 from ._match3d_shape import MATCH3D_SHAPE_NOT_YET as MATCH3D_SHAPE_NOT_YET
 from ._match3d_shape import run_shape_cell as run_shape_cell
+from ._match3d_shape import turned_shell as turned_shell
 from ._multiview import bundle_scene as bundle_scene
 from ._particles import particle_scene as particle_scene
 from ._phantom import CT_MATERIALS as CT_MATERIALS

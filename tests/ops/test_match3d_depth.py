@@ -25,8 +25,10 @@ COLS = [m for m in MATCH3D_DEPTH_METHODS if m not in MATCH3D_DEPTH_NOT_APPLICABL
 # and test_match3d_fm.py in a full run): marked slow
 SLOW = ("lm_translation_scale3d", "lm_rotation_z3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d")
 ROT = ("lm_rotation_z3d", "fourier_mellin_z3d", "fourier_mellin_z3d+lm_rotation_z3d", "chamfer_rotation_z3d")
-# chamfer_rotation_z3d: its 48^3 / 24^3 program (shared with tests/ops/test_match3d_fm.py's slow cells)
-SLOW = SLOW + ("chamfer_rotation_z3d",)
+# chamfer_rotation_z3d: its 48^3 / 24^3 program (shared with tests/ops/test_match3d_fm.py's slow cells);
+# generalised_hough_rotation_z3d likewise (tests/ops/test_match3d_shape.py's slow cells)
+SLOW = SLOW + ("chamfer_rotation_z3d", "generalised_hough_rotation_z3d")
+ROT = ROT + ("generalised_hough_rotation_z3d",)
 
 
 def test_depth_row_columns_are_all_accounted_for():

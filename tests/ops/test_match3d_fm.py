@@ -15,6 +15,7 @@ from fsjax.synth import (
     MATCH3D_MORE_NOT_YET,
     MATCH3D_STRUCTURES,
     run_more_cell,
+    turned_shell,
 )
 from fsjax.types import reason_code
 
@@ -231,17 +232,6 @@ def test_chamfer3d_fails_closed():
 # --- chamfer_rotation_z3d ---------------------------------------------------------------------
 
 
-def _turned_blob(c, a, n=30, shell=True):
-    """The docstring's object: an ellipsoid with a knob, turned by ``a`` about z; its shell (the
-    example) or the filled blob."""
-    k, i, j = np.mgrid[0:n, 0:n, 0:n]
-    x, y = j - c[2], i - c[1]
-    u, v = np.cos(a) * x + np.sin(a) * y, -np.sin(a) * x + np.cos(a) * y
-    g = (np.exp(-((k - c[0]) ** 2 / 8 + u ** 2 / 30 + v ** 2 / 4))
-         + np.exp(-((k - c[0]) ** 2 + (u - 3) ** 2 + (v - 4) ** 2) / 3))
-    return np.exp(-((g - 0.5) / 0.2) ** 2) if shell else g
-
-
 def test_chamfer_rotation_z3d_recovers_a_turn_the_unturned_chamfer_cannot():
     """The docstring's shell (one compiled program with it) turned by 37 degrees about z and moved:
     the angle within 0.5 degree, the centre within 0.15 voxel (measured 0.13 degree, 0.04 voxel);
@@ -250,8 +240,8 @@ def test_chamfer_rotation_z3d_recovers_a_turn_the_unturned_chamfer_cannot():
     filled blob turned by 5 degrees is found at angle 0 (error 4.98 degrees) and reported valid: the
     scene's distance is 0 inside a solid, so a small turn costs nearly nothing (pinned, documented)."""
     truth = np.array([13.6, 15.2, 14.3])  # (x, y, z) of the template's centre in the scene
-    scene = fsjax.Volume(_turned_blob((14.3, 15.2, 13.6), np.deg2rad(37.0)))
-    tpl = fsjax.Volume(_turned_blob((10.0, 10.0, 10.0), 0.0)[:21, :21, :21])
+    scene = fsjax.Volume(turned_shell((14.3, 15.2, 13.6), 37.0))
+    tpl = fsjax.Volume(turned_shell((10.0, 10.0, 10.0), 0.0)[:21, :21, :21])
     m = ops.chamfer_rotation_z3d(scene, tpl, level=0.3)
     a = float(np.degrees(np.arctan2(m.R[1, 0], m.R[0, 0])))
     err_c = float(np.abs(np.asarray(m.apply(np.full(3, 10.0))) - truth).max())
@@ -267,8 +257,8 @@ def test_chamfer_rotation_z3d_recovers_a_turn_the_unturned_chamfer_cannot():
     me = ops.chamfer_rotation_z3d(fsjax.Volume(np.zeros((30, 30, 30))), tpl, level=0.3)
     assert not bool(me.valid) and int(me.reason) == reason_code("invalid_input") and bool(np.isnan(me.t).all())
     # where it breaks: a filled solid turned by 5 degrees
-    solid = ops.chamfer_rotation_z3d(fsjax.Volume(_turned_blob((14.3, 15.2, 13.6), np.deg2rad(5.0), shell=False)),
-                                     fsjax.Volume(_turned_blob((10.0, 10.0, 10.0), 0.0, shell=False)[:21, :21, :21]),
+    solid = ops.chamfer_rotation_z3d(fsjax.Volume(turned_shell((14.3, 15.2, 13.6), 5.0, shell=False)),
+                                     fsjax.Volume(turned_shell((10.0, 10.0, 10.0), 0.0, shell=False)[:21, :21, :21]),
                                      level=0.3)
     a5 = float(np.degrees(np.arctan2(solid.R[1, 0], solid.R[0, 0])))
     print(f"filled blob turned by 5 deg: found at {a5:.3f} deg, valid {bool(solid.valid)}")

@@ -19,6 +19,7 @@ from ._shared3d import (
     make_match,
     neighbourhood3,
     newton_peak3,
+    turned_pose,
     xyz_of,
 )
 
@@ -266,15 +267,9 @@ def chamfer_rotation_z3d(scene: Volume, template: Volume, /, *, level: float = 0
       within 0.2 voxel (measured: 0.26 degree, 0.10 voxel):
 
       >>> import numpy as np, fsjax
-      >>> k, i, j = np.mgrid[0:30, 0:30, 0:30]
-      >>> def shell(c, a):
-      ...     x, y = j - c[2], i - c[1]
-      ...     u, v = np.cos(a) * x + np.sin(a) * y, -np.sin(a) * x + np.cos(a) * y
-      ...     g = (np.exp(-((k - c[0]) ** 2 / 8 + u ** 2 / 30 + v ** 2 / 4))
-      ...          + np.exp(-((k - c[0]) ** 2 + (u - 3) ** 2 + (v - 4) ** 2) / 3))
-      ...     return np.exp(-((g - 0.5) / 0.2) ** 2)
-      >>> scene = fsjax.Volume(shell((14.3, 15.2, 13.6), np.deg2rad(-120.0)))
-      >>> tpl = fsjax.Volume(shell((10.0, 10.0, 10.0), 0.0)[:21, :21, :21])
+      >>> from fsjax.synth import turned_shell  # an anisotropic blob's shell, turned about z
+      >>> scene = fsjax.Volume(turned_shell((14.3, 15.2, 13.6), -120.0))
+      >>> tpl = fsjax.Volume(turned_shell((10.0, 10.0, 10.0), 0.0)[:21, :21, :21])
       >>> m = fsjax.ops.chamfer_rotation_z3d(scene, tpl, level=0.3)
       >>> a = np.degrees(np.arctan2(float(m.R[1, 0]), float(m.R[0, 0])))
       >>> c = np.asarray(m.apply(np.full(3, 10.0)))  # the template's box centre in the scene
@@ -300,12 +295,7 @@ def chamfer_rotation_z3d(scene: Volume, template: Volume, /, *, level: float = 0
     a, off, cost, ok = _chamfer_rot_jit(scene.data.astype(dt), template.data.astype(dt), jnp.asarray(level, dt),
                                         jnp.asarray(tl, dt), n_angles=na, n_fine=nf,
                                         spacing=tuple(float(s) for s in scene.spacing))
-    ca, sa = jnp.cos(a), jnp.sin(a)
-    z, o = jnp.zeros((), dt), jnp.ones((), dt)
-    R = jnp.stack([jnp.stack([ca, -sa, z]), jnp.stack([sa, ca, z]), jnp.stack([z, z, o])]).astype(dt)
-    c_xyz = xyz_of((jnp.asarray(T_shape, dt) - 1) / 2, scene.spacing).astype(dt)
-    # the turned template's voxel [0, 0, 0] sits at off: its box centre at off + c, where p = c lands
-    t = xyz_of(off, scene.spacing).astype(dt) + c_xyz - R @ c_xyz
+    R, t = turned_pose(a, off, T_shape, scene.spacing, dt)
     valid = ok & (cost <= jnp.asarray(max_distance, dt))
     reason = jnp.where(ok, _NOT_FOUND, _INVALID)
     return make_match(R, t, cost, valid, reason)

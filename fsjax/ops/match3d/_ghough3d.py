@@ -113,9 +113,10 @@ def _local_max3(A):
     return A >= m
 
 
-def _model_table(t, sigma, spacing, model_contrast, cos_tol, dirs, max_points: int):
-    """R-table entries: ``(E,)`` bins, ``(E, 3)`` offsets (k, i, j) and validity, ``E = max_points * n_dirs``;
-    and the number of model points."""
+def _model_points(t, sigma, spacing, model_contrast, max_points: int):
+    """The model points: ``(P, 3)`` voxel indices (k, i, j), ``(P, 3)`` unit gradient directions ((z, y, x)
+    components), ``(P,)`` validity (``P = max_points``, sampled evenly in index order when there are more edge
+    voxels), and their number."""
     d, h, w = t.shape
     M, dm, nM = model_of(t, sigma, spacing, model_contrast)
     T = d * h * w
@@ -124,33 +125,49 @@ def _model_table(t, sigma, spacing, model_contrast, cos_tol, dirs, max_points: i
     r = jnp.arange(P)
     take = jnp.where(nM > P, jnp.floor((r + 0.5) * nM / P).astype(jnp.int32), r)
     n_model = jnp.minimum(nM, P)
-    pv = r < n_model
     mi = idx[jnp.clip(take, 0, T - 1)]
     u = jnp.stack(jnp.unravel_index(mi, (d, h, w)), -1)
-    dirm = dm.reshape(3, -1)[:, mi].T  # (P, 3) unit, (z, y, x) components
-    c = jnp.abs(dirm @ jnp.asarray(dirs[:, ::-1].T, t.dtype))  # bins' (x, y, z) -> (z, y, x)
-    # the bin a scene voxel of the very same direction falls in is always listed (scene_bins' table)
+    return u, dm.reshape(3, -1)[:, mi].T, r < n_model, n_model
+
+
+def _rtable(u, dirm, pv, cos_tol, dirs):
+    """R-table entries of model points ``u (P, 3)`` with directions ``dirm (P, 3)`` ((z, y, x)): ``(E,)`` bins,
+    ``(E, 3)`` offsets and validity, ``E = P * n_dirs`` (a point is listed under every bin within ``cos_tol`` of
+    its direction and under the bin a scene voxel of its very direction falls in)."""
+    c = jnp.abs(dirm @ jnp.asarray(dirs[:, ::-1].T, dirm.dtype))  # bins' (x, y, z) -> (z, y, x)
     own = scene_bins(dirm.T, dirs.shape[0])
     member = (c >= cos_tol) | (jnp.arange(dirs.shape[0])[None, :] == own[:, None])
     ev = (pv[:, None] & member).reshape(-1)
     eb = jnp.broadcast_to(jnp.arange(dirs.shape[0]), member.shape).reshape(-1)
     eu = jnp.broadcast_to(u[:, None, :], member.shape + (3,)).reshape(-1, 3)
-    return eb, eu, ev, n_model
+    return eb, eu, ev
 
 
-def _accumulate(x, eb, eu, ev, sigma, spacing, edge_contrast, dirs, tshape, max_votes: int):
-    """The vote accumulator over placements ``(D-d+1, H-h+1, W-w+1)`` and the total vote count."""
-    D, H, W = x.shape
-    d, h, w = tshape
-    nb = dirs.shape[0]
+def _model_table(t, sigma, spacing, model_contrast, cos_tol, dirs, max_points: int):
+    """R-table entries: ``(E,)`` bins, ``(E, 3)`` offsets (k, i, j) and validity, ``E = max_points * n_dirs``;
+    and the number of model points."""
+    u, dirm, pv, n_model = _model_points(t, sigma, spacing, model_contrast, max_points)
+    return (*_rtable(u, dirm, pv, cos_tol, dirs), n_model)
+
+
+def _scene_edges(x, sigma, spacing, edge_contrast, nb: int):
+    """The scene's edge voxels by bin: flat indices sorted by bin (non-edge voxels last), and each bin's count
+    and first position in that order."""
     g = gradient3(x, sigma, spacing).reshape(3, -1)
     mag = jnp.sqrt(jnp.sum(g * g, 0))
     edge = (mag > edge_contrast * jnp.max(mag)) & (jnp.max(mag) > _floor(x, spacing))
-    b = scene_bins(g, nb)
-    key = jnp.where(edge, b, nb)
+    key = jnp.where(edge, scene_bins(g, nb), nb)
     order = jnp.argsort(key, stable=True)
     counts = jnp.bincount(key, length=nb + 1)
-    start = jnp.cumsum(counts) - counts
+    return order, counts, jnp.cumsum(counts) - counts
+
+
+def _vote(edges, eb, eu, ev, sshape, tshape, max_votes: int, dt):
+    """The vote accumulator over placements ``(D-d+1, H-h+1, W-w+1)`` of the R-table ``(eb, eu, ev)`` against
+    the scene's edges (:func:`_scene_edges`), and the total vote count."""
+    order, counts, start = edges
+    D, H, W = sshape
+    d, h, w = tshape
     ce = jnp.where(ev, counts[eb], 0)
     cum = jnp.cumsum(ce)
     total = cum[-1]
@@ -168,8 +185,14 @@ def _accumulate(x, eb, eu, ev, sigma, spacing, edge_contrast, dirs, tshape, max_
     inside = (p < total) & jnp.all((o >= 0) & (o <= lim), axis=1)
     shp = (D - d + 1, H - h + 1, W - w + 1)
     flat = jnp.where(inside, (o[:, 0] * shp[1] + o[:, 1]) * shp[2] + o[:, 2], shp[0] * shp[1] * shp[2])
-    A = jnp.zeros(shp[0] * shp[1] * shp[2], x.dtype).at[flat].add(1.0, mode="drop").reshape(shp)
+    A = jnp.zeros(shp[0] * shp[1] * shp[2], dt).at[flat].add(1.0, mode="drop").reshape(shp)
     return A, total
+
+
+def _accumulate(x, eb, eu, ev, sigma, spacing, edge_contrast, dirs, tshape, max_votes: int):
+    """The vote accumulator over placements ``(D-d+1, H-h+1, W-w+1)`` and the total vote count."""
+    edges = _scene_edges(x, sigma, spacing, edge_contrast, dirs.shape[0])
+    return _vote(edges, eb, eu, ev, x.shape, tshape, max_votes, x.dtype)
 
 
 @functools.partial(jax.jit, static_argnames=("sigma", "spacing", "n_dirs", "max_points", "max_votes",
@@ -264,7 +287,17 @@ def generalised_hough3d(scene: Volume, template: Volume, /, *, min_votes: float 
       >>> [round(float(s), 6) for s in m.score]
       [1.0, 1.0, 0.0]
     """
-    op = "generalised_hough3d"
+    T, dt, arrays, static = _hough_args("generalised_hough3d", scene, template, min_votes, max_instances,
+                                        min_distance, n_dirs, angle_tol_deg, sigma, model_contrast, edge_contrast,
+                                        max_points, max_votes)
+    off, sc, found, ok, over, _ = _ghough_core(*arrays, **static)
+    return _hough_match(jnp.eye(3, dtype=dt), xyz_of(off, scene.spacing).astype(dt), sc, found, ok, over, dt)
+
+
+def _hough_args(op, scene, template, min_votes, max_instances, min_distance, n_dirs, angle_tol_deg, sigma,
+                model_contrast, edge_contrast, max_points, max_votes):
+    """The Hough ops' argument checks: the template's shape, the dtype, and the core's arrays and static
+    keywords (shared with :func:`fsjax.ops.generalised_hough_rotation_z3d`)."""
     S, T, dt = check_pair(op, scene, template)
     check_range(op, "min_votes", min_votes, 0.0, 1.0)
     k = check_static_int(op, "max_instances", max_instances, lo=1, hi=64)
@@ -282,15 +315,22 @@ def generalised_hough3d(scene: Volume, template: Volume, /, *, min_votes: float 
         raise ValueError(f"{op}: argument 'template' of shape {T} is too small (need >= 3 voxels per axis)")
     md = 0.5 * min(T) if min_distance is None else min_distance
     check_range(op, "min_distance", md, 0.0, None)
-    off, sc, found, ok, over, _ = _ghough_core(
-        scene.data.astype(dt), template.data.astype(dt), jnp.asarray(model_contrast, dt),
-        jnp.asarray(edge_contrast, dt), jnp.asarray(math.cos(math.radians(angle_tol_deg)), dt),
-        jnp.asarray(min_votes, dt), jnp.asarray(md, dt), sigma=float(sigma),
-        spacing=tuple(float(v) for v in scene.spacing), n_dirs=nd, max_points=P, max_votes=V, max_instances=k)
+    arrays = (scene.data.astype(dt), template.data.astype(dt), jnp.asarray(model_contrast, dt),
+              jnp.asarray(edge_contrast, dt), jnp.asarray(math.cos(math.radians(angle_tol_deg)), dt),
+              jnp.asarray(min_votes, dt), jnp.asarray(md, dt))
+    static = dict(sigma=float(sigma), spacing=tuple(float(v) for v in scene.spacing), n_dirs=nd, max_points=P,
+                  max_votes=V, max_instances=k)
+    return T, dt, arrays, static
+
+
+def _hough_match(R, t, sc, found, ok, over, dt) -> Match3D:
+    """The instances as a ``Match3D`` (batch ``(max_instances,)``): NaN pose and a reason where not valid
+    (``capacity_exceeded`` over all on a vote overflow, ``invalid_input`` without enough model points,
+    else ``not_found``), score 0 in an empty slot."""
     valid = found & ok & ~over
     reason = jnp.where(over, _CAPACITY, jnp.where(ok, _NOT_FOUND, _INVALID))
     nan = jnp.asarray(jnp.nan, dt)
-    R = jnp.where(valid[:, None, None], jnp.eye(3, dtype=dt), nan)
-    t = jnp.where(valid[:, None], xyz_of(off, scene.spacing).astype(dt), nan)
+    R = jnp.where(valid[:, None, None], R, nan)
+    t = jnp.where(valid[:, None], t, nan)
     reason = jnp.where(valid, _OK, reason).astype(jnp.int32)
     return Match3D(R, t, jnp.where(found, sc, 0.0), valid, reason, scale=jnp.where(valid, 1.0, nan).astype(dt))

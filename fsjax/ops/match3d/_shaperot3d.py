@@ -42,14 +42,7 @@ from ._shape3d import (
     model_of,
     scene_directions,
 )
-from ._shared3d import (
-    _INVALID,
-    _NOT_FOUND,
-    make_match,
-    neighbourhood3,
-    newton_peak3,
-    xyz_of,
-)
+from ._shared3d import _INVALID, _NOT_FOUND, make_match, peak3, turned_pose
 
 __all__ = ["shape_rotation_z3d"]
 
@@ -68,6 +61,50 @@ def _turned(T, a):
     xs, ys = ca * x + sa * y, -sa * x + ca * y
     v = jax.scipy.ndimage.map_coordinates(T, [k, ys + ci, xs + cj], order=1, mode="constant", cval=0.0)
     return v, x * x + y * y <= r * r
+
+
+def box_points(shape, dt):
+    """Every voxel of a box of ``shape`` as ``(N, 3)`` (k, i, j) coordinates relative to its centre, and the
+    centre ``(3,)``."""
+    c_t = (jnp.asarray(shape, dt) - 1) / 2
+    k, i, j = jnp.meshgrid(*(jnp.arange(n, dtype=dt) for n in shape), indexing="ij")
+    return jnp.stack([k.ravel(), i.ravel(), j.ravel()], -1) - c_t, c_t
+
+
+def turned_coords(th, pts):
+    """Scene coordinates ``[k, i, j]`` (each ``(N,)``) of box points ``pts (N, 3)`` (relative to the box centre)
+    turned about z by ``th[0]`` and centred at ``th[1:]`` ((k, i, j) voxels); and ``cos``, ``sin`` of the turn."""
+    ca, sa = jnp.cos(th[0]), jnp.sin(th[0])
+    x, y = pts[:, 2], pts[:, 1]
+    return [th[1] + pts[:, 0], th[2] + sa * x + ca * y, th[3] + ca * x - sa * y], ca, sa
+
+
+def search_turns(score_map, neg_score, n_angles: int, n_fine: int, c_t, dt):
+    """The turned matchers' search (module notes): the best of ``n_angles`` angles over the full turn by the
+    largest of ``score_map(a)[0]`` (the FFT score map at angle ``a``), the best of ``2 n_fine + 1`` around
+    it, the angle and centre refined together by pattern search on ``neg_score(th)`` (``th = (a, k, i, j)``,
+    the box centre ``c_t`` placed at ``(k, i, j)``) from there, and the placement at the refined angle by the
+    Newton peak of its score map. Returns the angle, the placement of the turned box's voxel ``[0, 0, 0]``,
+    the score at the integer peak and ``score_map``'s second output at that angle."""
+
+    def best(angles):
+        return jax.lax.map(lambda a: jnp.max(score_map(a)[0]), angles)
+
+    step = 2 * jnp.pi / n_angles
+    coarse = -jnp.pi + step * jnp.arange(n_angles, dtype=dt)
+    a0 = coarse[jnp.argmax(best(coarse))]
+    fstep = step / n_fine
+    fine = a0 + fstep * jnp.arange(-n_fine, n_fine + 1, dtype=dt)
+    b = jnp.argmax(best(fine))
+    _, q0 = peak3(score_map(fine[b])[0])
+    # the max over integer placements snaps the angle (the score over angles is flat near its peak: measured
+    # 1.1 degrees off on shape_rotation_z3d's docstring blob); the placement at the refined angle is the Newton
+    # peak of the FFT score map (there 0.03 voxel, where the pattern search's own centre is 0.30 off along z)
+    th, _ = _pattern_search(neg_score, jnp.concatenate([fine[b][None], q0 + c_t]),
+                            jnp.asarray([fstep, 0.5, 0.5, 0.5], dt), 40)
+    S, n = score_map(th[0])
+    idx, off = peak3(S)
+    return th[0], off, S[idx[0], idx[1], idx[2]], n
 
 
 @functools.partial(jax.jit, static_argnames=("sigma", "spacing", "polarity", "n_angles", "n_fine"))
@@ -101,37 +138,16 @@ def _shaperot_core(x, t, model_contrast, min_contrast, *, sigma: float, spacing,
         S = S / jnp.maximum(n, 1)
         return (jnp.abs(S) if polarity == "global" else S), n
 
-    def best(angles):
-        return jax.lax.map(lambda a: jnp.max(score_map(a)[0]), angles)
-
-    step = 2 * jnp.pi / n_angles
-    coarse = -jnp.pi + step * jnp.arange(n_angles, dtype=dt)
-    a0 = coarse[jnp.argmax(best(coarse))]
-    fstep = step / n_fine
-    fine = a0 + fstep * jnp.arange(-n_fine, n_fine + 1, dtype=dt)
-    sf = best(fine)
-    b = jnp.argmax(sf)
-
-    # the continuous refinement: the unturned template's model points (in its cylinder) turned exactly, with
-    # their directions, against the scene's directions sampled trilinearly; angle and centre together by
-    # Hooke and Jeeves' pattern search (the max over integer placements snaps the angle: measured 1.1 degrees
-    # off on the docstring's blob, whose score over angles is flat within 1e-3 near its peak)
-    S, _ = score_map(fine[b])
-    idx = jnp.asarray(jnp.unravel_index(jnp.argmax(S), S.shape))
-    v, ok = neighbourhood3(S, idx)
-    c_t = (jnp.asarray((d, h, w), dt) - 1) / 2
-    q0 = idx.astype(dt) + newton_peak3(v, ok) + c_t
+    # the continuous score: the unturned template's model points (in its cylinder) turned exactly, with their
+    # directions, against the scene's directions sampled trilinearly
     v0, inside = _turned(t, jnp.zeros((), dt))
     M, dm, _ = model_of(v0, sigma, spacing, model_contrast)
     wts = (M & inside).astype(dt).ravel()
-    k, i, j = jnp.meshgrid(jnp.arange(d, dtype=dt), jnp.arange(h, dtype=dt), jnp.arange(w, dtype=dt), indexing="ij")
-    pts = jnp.stack([k.ravel(), i.ravel(), j.ravel()], -1) - c_t
+    pts, c_t = box_points(t.shape, dt)
     dm = dm.reshape(3, -1)
 
     def neg_score(th):
-        ca, sa = jnp.cos(th[0]), jnp.sin(th[0])
-        x, y = pts[:, 2], pts[:, 1]
-        coords = [th[1] + pts[:, 0], th[2] + sa * x + ca * y, th[3] + ca * x - sa * y]
+        coords, ca, sa = turned_coords(th, pts)
         e = [dm[0], sa * dm[2] + ca * dm[1], ca * dm[2] - sa * dm[1]]  # the turned directions (z, y, x)
         sv = [jax.scipy.ndimage.map_coordinates(ds[c], coords, order=1, mode="nearest") for c in range(3)]
         if polarity == "local":
@@ -142,16 +158,8 @@ def _shaperot_core(x, t, model_contrast, min_contrast, *, sigma: float, spacing,
         val = val / jnp.maximum(jnp.sum(wts), 1.0)
         return -(jnp.abs(val) if polarity == "global" else val)
 
-    # the placement at that angle: the Newton peak of the FFT score map (measured on the docstring's blob: 0.03
-    # voxel, where the pattern search's own centre is 0.30 off along z)
-    th, _ = _pattern_search(neg_score, jnp.concatenate([fine[b][None], q0]), jnp.asarray([fstep, 0.5, 0.5, 0.5], dt),
-                            40)
-    a2 = th[0]
-    S, n = score_map(a2)
-    idx = jnp.asarray(jnp.unravel_index(jnp.argmax(S), S.shape))
-    v, ok = neighbourhood3(S, idx)
-    off = idx.astype(dt) + newton_peak3(v, ok)
-    return a2, off, S[idx[0], idx[1], idx[2]], (n >= _MIN_MODEL_POINTS) & lit
+    a, off, s, n = search_turns(score_map, neg_score, n_angles, n_fine, c_t, dt)
+    return a, off, s, (n >= _MIN_MODEL_POINTS) & lit
 
 
 @register(family="match3d", takes=(Volume, Volume), gives=Match3D, differentiable=False,
@@ -206,15 +214,9 @@ def shape_rotation_z3d(scene: Volume, template: Volume, /, *, min_score: float =
       0.2 voxel (measured: 0.09 degree, 0.03 voxel; the scene inverted, ``1 - scene``, the same):
 
       >>> import numpy as np, fsjax
-      >>> k, i, j = np.mgrid[0:30, 0:30, 0:30]
-      >>> def shell(c, a):
-      ...     x, y = j - c[2], i - c[1]
-      ...     u, v = np.cos(a) * x + np.sin(a) * y, -np.sin(a) * x + np.cos(a) * y
-      ...     g = (np.exp(-((k - c[0]) ** 2 / 8 + u ** 2 / 30 + v ** 2 / 4))
-      ...          + np.exp(-((k - c[0]) ** 2 + (u - 3) ** 2 + (v - 4) ** 2) / 3))
-      ...     return np.exp(-((g - 0.5) / 0.2) ** 2)
-      >>> scene = fsjax.Volume(shell((14.3, 15.2, 13.6), np.deg2rad(-117.3)))
-      >>> tpl = fsjax.Volume(shell((10.0, 10.0, 10.0), 0.0)[:21, :21, :21])
+      >>> from fsjax.synth import turned_shell  # an anisotropic blob's shell, turned about z
+      >>> scene = fsjax.Volume(turned_shell((14.3, 15.2, 13.6), -117.3))
+      >>> tpl = fsjax.Volume(turned_shell((10.0, 10.0, 10.0), 0.0)[:21, :21, :21])
       >>> m = fsjax.ops.shape_rotation_z3d(scene, tpl)
       >>> a = np.degrees(np.arctan2(float(m.R[1, 0]), float(m.R[0, 0])))
       >>> c = np.asarray(m.apply(np.full(3, 10.0)))  # the template's box centre in the scene
@@ -239,12 +241,7 @@ def shape_rotation_z3d(scene: Volume, template: Volume, /, *, min_score: float =
                                    jnp.asarray(min_contrast, dt), sigma=float(sigma),
                                    spacing=tuple(float(v) for v in scene.spacing), polarity=pol, n_angles=na,
                                    n_fine=nf)
-    ca, sa = jnp.cos(a), jnp.sin(a)
-    z, o = jnp.zeros((), dt), jnp.ones((), dt)
-    R = jnp.stack([jnp.stack([ca, -sa, z]), jnp.stack([sa, ca, z]), jnp.stack([z, z, o])]).astype(dt)
-    c_xyz = xyz_of((jnp.asarray(T, dt) - 1) / 2, scene.spacing).astype(dt)
-    # the turned template's voxel [0, 0, 0] sits at off: its box centre at off + c, where p = c lands
-    t = xyz_of(off, scene.spacing).astype(dt) + c_xyz - R @ c_xyz
+    R, t = turned_pose(a, off, T, scene.spacing, dt)
     valid = ok & (s >= jnp.asarray(min_score, dt))
     reason = jnp.where(ok, _NOT_FOUND, _INVALID)
     return make_match(R, t, s, valid, reason)

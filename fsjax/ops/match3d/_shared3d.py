@@ -64,6 +64,18 @@ def make_match(R, t, score, valid, reason, scale=None, iterations=0) -> Match3D:
                    scale=jnp.where(valid, scale, nan), iterations=iterations)
 
 
+def turned_pose(a, off, tshape, spacing, dt):
+    """The pose of a template turned about z by ``a`` (radians; any batch shape) through its box centre and
+    placed with the turned box's voxel ``[0, 0, 0]`` at ``off`` (``(..., 3)`` (k, i, j) voxels): ``R = Rz(a)``
+    (counter-clockwise from +x towards +y) and ``t`` such that a template point ``p`` lands at ``R p + t``
+    (the box centre ``c`` at ``off + c``)."""
+    ca, sa = jnp.cos(a), jnp.sin(a)
+    z, o = jnp.zeros_like(a), jnp.ones_like(a)
+    R = jnp.stack([jnp.stack([ca, -sa, z], -1), jnp.stack([sa, ca, z], -1), jnp.stack([z, z, o], -1)], -2).astype(dt)
+    c_xyz = xyz_of((jnp.asarray(tshape, dt) - 1) / 2, spacing).astype(dt)
+    return R, xyz_of(off, spacing).astype(dt) + c_xyz - R @ c_xyz
+
+
 def det3(H):
     """Determinant of a general 3x3 matrix (cofactor expansion; no LAPACK)."""
     return (H[0, 0] * (H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]) - H[0, 1] * (H[1, 0] * H[2, 2] - H[1, 2] * H[2, 0])
@@ -114,3 +126,10 @@ def newton_peak3(v, ok):
         okd = (den < 0) & ok[a]
         par.append(jnp.where(okd, jnp.clip(0.5 * (m - p) / jnp.where(okd, den, -1.0), -0.5, 0.5), 0.0))
     return jnp.where(good, step, jnp.stack(par))
+
+
+def peak3(S):
+    """The integer maximum ``idx (3,)`` of a score map ``S`` and its sub-voxel position (:func:`newton_peak3`)."""
+    idx = jnp.asarray(jnp.unravel_index(jnp.argmax(S), S.shape))
+    v, ok = neighbourhood3(S, idx)
+    return idx, idx.astype(S.dtype) + newton_peak3(v, ok)

@@ -21,11 +21,11 @@ import jax.numpy as jnp
 from ..._checks import check_static_int
 from ...registry import LinKnob, register
 from ...types import Match3D, Volume
-from ._chamfer3d import _REF_HJ, _pattern_search
+from ._chamfer3d import _REF_HJ
 from ._shape3d import _floor, check_gradient_match
 from ._shapeindex3d import _MIN_MODEL_POINTS, _REF_KVD, _REF_TG, _unit_code, shape_index_field
-from ._shaperot3d import _turned
-from ._shared3d import _INVALID, _NOT_FOUND, make_match, neighbourhood3, newton_peak3, xyz_of
+from ._shaperot3d import _turned, box_points, search_turns, turned_coords
+from ._shared3d import _INVALID, _NOT_FOUND, make_match, turned_pose
 
 __all__ = ["shape_index_rotation_z3d"]
 
@@ -57,41 +57,19 @@ def _sirot_core(x, t, model_contrast, min_contrast, *, sigma: float, spacing, bi
         S = jnp.fft.irfftn(jnp.sum(Fs * jnp.conj(Ft), 0), s=(D, H, W))[: D - d + 1, : H - h + 1, : W - w + 1]
         return S / jnp.maximum(n, 1), n
 
-    def best(angles):
-        return jax.lax.map(lambda a: jnp.max(score_map(a)[0]), angles)
-
-    step = 2 * jnp.pi / n_angles
-    coarse = -jnp.pi + step * jnp.arange(n_angles, dtype=dt)
-    a0 = coarse[jnp.argmax(best(coarse))]
-    fstep = step / n_fine
-    fine = a0 + fstep * jnp.arange(-n_fine, n_fine + 1, dtype=dt)
-    b = jnp.argmax(best(fine))
-    S, _ = score_map(fine[b])
-    idx = jnp.asarray(jnp.unravel_index(jnp.argmax(S), S.shape))
-    v, ok = neighbourhood3(S, idx)
-    c_t = (jnp.asarray((d, h, w), dt) - 1) / 2
-    q0 = idx.astype(dt) + newton_peak3(v, ok) + c_t
     M0, et0 = model(*_turned(t, jnp.zeros((), dt)))
     wts = M0.astype(dt).ravel()
     et0 = et0.reshape(bins, -1)
-    k, i, j = jnp.meshgrid(jnp.arange(d, dtype=dt), jnp.arange(h, dtype=dt), jnp.arange(w, dtype=dt), indexing="ij")
-    pts = jnp.stack([k.ravel(), i.ravel(), j.ravel()], -1) - c_t
+    pts, c_t = box_points(t.shape, dt)
 
     def neg_score(th):
-        ca, sa = jnp.cos(th[0]), jnp.sin(th[0])
-        x_, y_ = pts[:, 2], pts[:, 1]
-        coords = [th[1] + pts[:, 0], th[2] + sa * x_ + ca * y_, th[3] + ca * x_ - sa * y_]
+        coords, _, _ = turned_coords(th, pts)
         val = sum(jnp.sum(wts * et0[c] * jax.scipy.ndimage.map_coordinates(es[c], coords, order=1, mode="nearest"))
                   for c in range(bins))
         return -val / jnp.maximum(jnp.sum(wts), 1.0)
 
-    th, _ = _pattern_search(neg_score, jnp.concatenate([fine[b][None], q0]), jnp.asarray([fstep, 0.5, 0.5, 0.5], dt),
-                            40)
-    S, n = score_map(th[0])
-    idx = jnp.asarray(jnp.unravel_index(jnp.argmax(S), S.shape))
-    v, ok = neighbourhood3(S, idx)
-    off = idx.astype(dt) + newton_peak3(v, ok)
-    return th[0], off, S[idx[0], idx[1], idx[2]], (n >= _MIN_MODEL_POINTS) & (jnp.max(ms) > _floor(x, spacing))
+    a, off, s, n = search_turns(score_map, neg_score, n_angles, n_fine, c_t, dt)
+    return a, off, s, (n >= _MIN_MODEL_POINTS) & (jnp.max(ms) > _floor(x, spacing))
 
 
 @register(family="match3d", takes=(Volume, Volume), gives=Match3D, differentiable=False,
@@ -141,15 +119,9 @@ def shape_index_rotation_z3d(scene: Volume, template: Volume, /, *, min_score: f
       accepts the scene but places the centre 2.6 voxels off:
 
       >>> import numpy as np, fsjax
-      >>> k, i, j = np.mgrid[0:30, 0:30, 0:30]
-      >>> def shell(c, a):
-      ...     x, y = j - c[2], i - c[1]
-      ...     u, v = np.cos(a) * x + np.sin(a) * y, -np.sin(a) * x + np.cos(a) * y
-      ...     g = (np.exp(-((k - c[0]) ** 2 / 8 + u ** 2 / 30 + v ** 2 / 4))
-      ...          + np.exp(-((k - c[0]) ** 2 + (u - 3) ** 2 + (v - 4) ** 2) / 3))
-      ...     return np.exp(-((g - 0.5) / 0.2) ** 2)
-      >>> scene = fsjax.Volume(shell((14.3, 15.2, 13.6), np.deg2rad(-117.3)))
-      >>> tpl = fsjax.Volume(shell((10.0, 10.0, 10.0), 0.0)[:21, :21, :21])
+      >>> from fsjax.synth import turned_shell  # an anisotropic blob's shell, turned about z
+      >>> scene = fsjax.Volume(turned_shell((14.3, 15.2, 13.6), -117.3))
+      >>> tpl = fsjax.Volume(turned_shell((10.0, 10.0, 10.0), 0.0)[:21, :21, :21])
       >>> m = fsjax.ops.shape_index_rotation_z3d(scene, tpl)
       >>> a = np.degrees(np.arctan2(float(m.R[1, 0]), float(m.R[0, 0])))
       >>> c = np.asarray(m.apply(np.full(3, 10.0)))  # the template's box centre in the scene
@@ -175,11 +147,7 @@ def shape_index_rotation_z3d(scene: Volume, template: Volume, /, *, min_score: f
     a, off, s, ok = _sirot_core(scene.data.astype(dt), template.data.astype(dt), jnp.asarray(model_contrast, dt),
                                 jnp.asarray(min_contrast, dt), sigma=float(sigma),
                                 spacing=tuple(float(v) for v in scene.spacing), bins=nb, n_angles=na, n_fine=nf)
-    ca, sa = jnp.cos(a), jnp.sin(a)
-    z, o = jnp.zeros((), dt), jnp.ones((), dt)
-    R = jnp.stack([jnp.stack([ca, -sa, z]), jnp.stack([sa, ca, z]), jnp.stack([z, z, o])]).astype(dt)
-    c_xyz = xyz_of((jnp.asarray(T, dt) - 1) / 2, scene.spacing).astype(dt)
-    t = xyz_of(off, scene.spacing).astype(dt) + c_xyz - R @ c_xyz
+    R, t = turned_pose(a, off, T, scene.spacing, dt)
     valid = ok & (s >= jnp.asarray(min_score, dt))
     reason = jnp.where(ok, _NOT_FOUND, _INVALID)
     return make_match(R, t, s, valid, reason)
