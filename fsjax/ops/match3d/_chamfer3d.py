@@ -20,6 +20,7 @@ from ._shared3d import (
     neighbourhood3,
     newton_peak3,
     turned_pose,
+    turned_template,
     xyz_of,
 )
 
@@ -124,20 +125,10 @@ def _turned_masks(T, level_t, angles):
     """The template's occupancy turned about z by each angle (about the box centre, trilinear
     resampling of the intensities, then the threshold), inside the cylinder inscribed in the box
     (the same voxels of the object at every angle)."""
-    d, h, w = T.shape
-    dt = T.dtype
-    ci, cj = (h - 1) / 2.0, (w - 1) / 2.0
-    r = (min(h, w) - 1) / 2.0
-    k, i, j = jnp.meshgrid(jnp.arange(d, dtype=dt), jnp.arange(h, dtype=dt), jnp.arange(w, dtype=dt), indexing="ij")
-    x, y = j - cj, i - ci
-    inside = x * x + y * y <= r * r
 
     def one(a):
-        ca, sa = jnp.cos(a), jnp.sin(a)
-        # the turned template at (x, y) is the template at Rz(-a) (x, y)
-        xs, ys = ca * x + sa * y, -sa * x + ca * y
-        v = jax.scipy.ndimage.map_coordinates(T, [k, ys + ci, xs + cj], order=1, mode="constant", cval=0.0)
-        return ((v > level_t) & inside).astype(dt)
+        v, inside = turned_template(T, a)
+        return ((v > level_t) & inside).astype(T.dtype)
 
     return jax.vmap(one)(angles)
 

@@ -42,25 +42,9 @@ from ._shape3d import (
     model_of,
     scene_directions,
 )
-from ._shared3d import _INVALID, _NOT_FOUND, make_match, peak3, turned_pose
+from ._shared3d import _INVALID, _NOT_FOUND, make_match, peak3, turned_pose, turned_template
 
 __all__ = ["shape_rotation_z3d"]
-
-
-def _turned(T, a):
-    """The template's intensities turned about z by ``a`` (about the box centre, trilinear, 0 outside
-    the box) and the cylinder inscribed in the box about z (the voxels that stay inside at every angle)."""
-    d, h, w = T.shape
-    dt = T.dtype
-    ci, cj = (h - 1) / 2.0, (w - 1) / 2.0
-    r = (min(h, w) - 1) / 2.0
-    k, i, j = jnp.meshgrid(jnp.arange(d, dtype=dt), jnp.arange(h, dtype=dt), jnp.arange(w, dtype=dt), indexing="ij")
-    x, y = j - cj, i - ci
-    ca, sa = jnp.cos(a), jnp.sin(a)
-    # the turned template at (x, y) is the template at Rz(-a) (x, y)
-    xs, ys = ca * x + sa * y, -sa * x + ca * y
-    v = jax.scipy.ndimage.map_coordinates(T, [k, ys + ci, xs + cj], order=1, mode="constant", cval=0.0)
-    return v, x * x + y * y <= r * r
 
 
 def box_points(shape, dt):
@@ -125,7 +109,7 @@ def _shaperot_core(x, t, model_contrast, min_contrast, *, sigma: float, spacing,
         Fs = jnp.stack([F(ds[a]) for a in range(3)])
 
     def score_map(a):
-        v, inside = _turned(t, a)
+        v, inside = turned_template(t, a)
         M, dm, _ = model_of(v, sigma, spacing, model_contrast)
         M = M & inside
         dm = jnp.where(M[None], dm, 0.0)
@@ -140,7 +124,7 @@ def _shaperot_core(x, t, model_contrast, min_contrast, *, sigma: float, spacing,
 
     # the continuous score: the unturned template's model points (in its cylinder) turned exactly, with their
     # directions, against the scene's directions sampled trilinearly
-    v0, inside = _turned(t, jnp.zeros((), dt))
+    v0, inside = turned_template(t, jnp.zeros((), dt))
     M, dm, _ = model_of(v0, sigma, spacing, model_contrast)
     wts = (M & inside).astype(dt).ravel()
     pts, c_t = box_points(t.shape, dt)

@@ -13,6 +13,7 @@ Conventions of the whole family (stated once):
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from ..._linalg import solve_small
@@ -62,6 +63,23 @@ def make_match(R, t, score, valid, reason, scale=None, iterations=0) -> Match3D:
     reason = jnp.where(valid, _OK, jnp.where(reason == _OK, _NOT_FOUND, reason)).astype(jnp.int32)
     return Match3D(jnp.where(valid, R, nan), jnp.where(valid, t, nan), score, valid, reason,
                    scale=jnp.where(valid, scale, nan), iterations=iterations)
+
+
+def turned_template(T, a):
+    """The template's intensities turned about z by ``a`` (radians, counter-clockwise from +x towards +y;
+    about the box centre, trilinear, 0 outside the box) and the cylinder inscribed in the box about z (the
+    voxels that stay inside at every angle): the turned matchers' templates."""
+    d, h, w = T.shape
+    dt = T.dtype
+    ci, cj = (h - 1) / 2.0, (w - 1) / 2.0
+    r = (min(h, w) - 1) / 2.0
+    k, i, j = jnp.meshgrid(jnp.arange(d, dtype=dt), jnp.arange(h, dtype=dt), jnp.arange(w, dtype=dt), indexing="ij")
+    x, y = j - cj, i - ci
+    ca, sa = jnp.cos(a), jnp.sin(a)
+    # the turned template at (x, y) is the template at Rz(-a) (x, y)
+    xs, ys = ca * x + sa * y, -sa * x + ca * y
+    v = jax.scipy.ndimage.map_coordinates(T, [k, ys + ci, xs + cj], order=1, mode="constant", cval=0.0)
+    return v, x * x + y * y <= r * r
 
 
 def turned_pose(a, off, tshape, spacing, dt):

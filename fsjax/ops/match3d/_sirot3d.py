@@ -24,8 +24,8 @@ from ...types import Match3D, Volume
 from ._chamfer3d import _REF_HJ
 from ._shape3d import _floor, check_gradient_match
 from ._shapeindex3d import _MIN_MODEL_POINTS, _REF_KVD, _REF_TG, _unit_code, shape_index_field
-from ._shaperot3d import _turned, box_points, search_turns, turned_coords
-from ._shared3d import _INVALID, _NOT_FOUND, make_match, turned_pose
+from ._shaperot3d import box_points, search_turns, turned_coords
+from ._shared3d import _INVALID, _NOT_FOUND, make_match, turned_pose, turned_template
 
 __all__ = ["shape_index_rotation_z3d"]
 
@@ -51,13 +51,13 @@ def _sirot_core(x, t, model_contrast, min_contrast, *, sigma: float, spacing, bi
         return M, jnp.where(M[None], _unit_code(St, bins), 0.0)
 
     def score_map(a):
-        M, et = model(*_turned(t, a))
+        M, et = model(*turned_template(t, a))
         n = jnp.sum(M)
         Ft = jnp.stack([F(et[b]) for b in range(bins)])
         S = jnp.fft.irfftn(jnp.sum(Fs * jnp.conj(Ft), 0), s=(D, H, W))[: D - d + 1, : H - h + 1, : W - w + 1]
         return S / jnp.maximum(n, 1), n
 
-    M0, et0 = model(*_turned(t, jnp.zeros((), dt)))
+    M0, et0 = model(*turned_template(t, jnp.zeros((), dt)))
     wts = M0.astype(dt).ravel()
     et0 = et0.reshape(bins, -1)
     pts, c_t = box_points(t.shape, dt)
