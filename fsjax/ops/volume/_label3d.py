@@ -21,15 +21,15 @@ Conventions:
   2x2x2 cube are 26-neighbours; 1x2x2 for 18, 1x1x2 for 6), two blocks are joined when a
   foreground voxel of one neighbours a foreground voxel of the other (one adjacency bit per
   term: two bits of two per-block words of "any foreground in this set of positions").
-  Pointers are block indices. Each round hooks every root to the smallest grandparent among its joined neighbours (a
-  scatter-min) and then jumps pointers twice. Pointers only decrease and stay inside the
-  component, so the loop stops at its fixed point (every block points at the smallest block
-  index of its component) with no iteration cap to hit. A block's key is the flat index of
-  its first foreground voxel; one scatter-min of the keys onto the roots then finds each
-  component's first voxel, and the block holding it stands for the component in the ranking:
-  those blocks are ranked by running popcounts of one mark per (z, y, x // 2)
-  cell (a block is two voxels wide in x, so no two of them share a cell and the cells' raster
-  order is theirs), packed 32 to a word.
+  Pointers are block indices. Each round hooks every root to the smallest grandparent among
+  its joined neighbours (a scatter-min) and then jumps pointers twice. Pointers only
+  decrease and stay inside the component, so the loop stops at its fixed point (every block
+  points at the smallest block index of its component) with no iteration cap to hit. A
+  block's key is the flat index of its first foreground voxel; one scatter-min of the keys
+  onto the roots then finds each component's first voxel, and the block holding it stands
+  for the component in the ranking: those blocks are ranked by running popcounts of one
+  mark per (z, y, x // 2) cell (a block is two voxels wide in x, so no two of them share a
+  cell and the cells' raster order is theirs), packed 32 to a word.
 * Nothing here is differentiable (a threshold in, integers out).
 """
 
@@ -207,7 +207,12 @@ def _block_union_find(fg, connectivity: int):
             nb = lax.dynamic_slice(p, (offs[k, 0], offs[k, 1], offs[k, 2]), (d, h, w))
             return jnp.minimum(out, jnp.where((bits >> k.astype(jnp.uint32)) & 1, nb, _INT_MAX))
 
-        return lax.fori_loop(0, T, tap, g).reshape(-1)
+        # two taps per loop step: one fused pass reads and writes the running minimum half as
+        # often (one tap per step measured 10-30 % slower per call; all 26 in one step slower)
+        out = lax.fori_loop(0, T // 2, lambda i, o: tap(2 * i + 1, tap(2 * i, o)), g)
+        if T % 2:
+            out = tap(jnp.int32(T - 1), out)
+        return out.reshape(-1)
 
     def jump(f):
         return f.at[f].get(mode="promise_in_bounds")
