@@ -51,6 +51,25 @@ def test_label_equals_scipy(name):
     assert np.array_equal(np.asarray(label3d(v).data), sk)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_label_random_odd_shape_equals_scipy(seed):
+    """Random masks at an odd shape (every axis padded to whole blocks) and densities around the
+    percolation threshold, each connectivity, single and batched: the same array as SciPy."""
+    rng = np.random.default_rng(100 + seed)
+    shape = (13, 17, 11)
+    ms = [rng.random(shape) < p for p in (0.15, 0.3, 0.45)] + [ndi.gaussian_filter(rng.random(shape), 1.0) > 0.5]
+    for conn in (6, 18, 26):
+        fn = jax.jit(lambda d, c=conn: label3d(Volume(d), connectivity=c).data)
+        batched = np.asarray(jax.jit(jax.vmap(fn))(jnp.asarray(np.stack(ms), jnp.float32)))
+        counts = []
+        for i, m in enumerate(ms):
+            ref, n = ndi.label(m, STRUCT[conn])
+            counts.append(n)
+            assert np.array_equal(np.asarray(fn(jnp.asarray(m, jnp.float32))), ref), (seed, conn, i)
+            assert np.array_equal(batched[i], ref), (seed, conn, i)
+        assert max(counts) > 5, counts     # not only one big component
+
+
 def test_label_nested_vmap_uses_the_batching_rule():
     rng = np.random.default_rng(1)
     ms = rng.random((2, 3, 6, 7, 8)) < 0.3

@@ -45,8 +45,8 @@ from jax import lax
 
 from ..._checks import check_positive
 from ...registry import register
-from ...render.camera import project
-from ...types import Camera, DepthStack, Volume
+from ...render.camera import distort_normalized
+from ...types import DepthStack, Volume
 from .._common import check_grid
 
 __all__ = ["tsdf_fuse"]
@@ -57,15 +57,27 @@ def _tsdf_core(z, K, dist, R, t, origin, truncation, *, shape, spacing, width, h
     D, H, W = shape
     dz, dy, dx = spacing
     dt = z.dtype
-    k, i, j = jnp.meshgrid(jnp.arange(D), jnp.arange(H), jnp.arange(W), indexing="ij")
-    pts = (jnp.stack([j * dx, i * dy, k * dz], -1).astype(dt) + origin).reshape(-1, 3)
-    n = pts.shape[0]
+    # The grid is regular, so a voxel's camera-frame position R^T (X - t) is a sum of three
+    # per-axis terms: (origin - t) R + j dx R[0] + i dy R[1] + k dz R[2], broadcast from (W,),
+    # (H,) and (D,) vectors per view instead of an (n, 3) point array read and multiplied by R
+    # (17.5 -> 3.7 ms per view on the bunny benchmark, old and new in one process); then the
+    # pinhole and distortion of ``fsjax.render.project``. In float64 the values equal the
+    # point-array form's within 3.2e-14; in float32 a voxel whose pixel is a rounding tie may
+    # take the neighbouring pixel either way (31 vs 33 voxels of 884,736 off the float64 values).
+    ks = jnp.arange(D, dtype=dt)[:, None, None] * dz
+    is_ = jnp.arange(H, dtype=dt)[None, :, None] * dy
+    js = jnp.arange(W, dtype=dt)[None, None, :] * dx
+    n = D * H * W
 
     def view(carry, v):
         acc, wsum, occluded = carry
         zv, Kv, dv, Rv, tv = v
-        cam = Camera(Kv, width=width, height=height, dist=dv, R=Rv, t=tv)
-        uv, zc = project(cam, pts)
+        base = (origin - tv) @ Rv
+        pc = [base[c] + ks * Rv[2, c] + is_ * Rv[1, c] + js * Rv[0, c] for c in range(3)]
+        zc = pc[2].reshape(-1)
+        zs = jnp.where(zc > 0, zc, 1.0)
+        xy = distort_normalized(dv, jnp.stack([pc[0].reshape(-1) / zs, pc[1].reshape(-1) / zs], -1))
+        uv = jnp.stack([Kv[0, 0] * xy[:, 0] + Kv[0, 1] * xy[:, 1] + Kv[0, 2], Kv[1, 1] * xy[:, 1] + Kv[1, 2]], -1)
         col = jnp.round(uv[:, 0])
         row = jnp.round(uv[:, 1])
         inb = (zc > 0) & (col >= 0) & (col <= width - 1) & (row >= 0) & (row <= height - 1)
