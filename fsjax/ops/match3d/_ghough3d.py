@@ -18,8 +18,10 @@ by every scene edge voxel, several instances by non-maximum suppression.
   every R-table entry of that bin. All votes at once, with a static capacity: scene edge
   voxels sorted by bin, the R-table entries' vote counts summed (prefix sums), vote
   ``p < max_votes`` mapped to its entry by a running maximum of the entries' first votes and
-  to its scene voxel by its rank within the entry, and one scatter-add into the accumulator
-  of placements (those that keep the template inside the scene, as :func:`fsjax.ops.ncc3d`).
+  to its scene voxel by its rank within the entry, and scatter-added into the accumulator
+  of placements (those that keep the template inside the scene, as :func:`fsjax.ops.ncc3d`),
+  in chunks of 65,536 votes, as many as there are votes (the capacity bounds them; the work
+  follows the count).
   More votes than ``max_votes`` is an overflow: every instance is reported invalid (reason
   ``capacity_exceeded``), never a partial count.
 * **Instances.** A placement's votes count the model points whose scene voxel agrees in
@@ -162,31 +164,53 @@ def _scene_edges(x, sigma, spacing, edge_contrast, nb: int):
     return order, counts, jnp.cumsum(counts) - counts
 
 
+VOTE_CHUNK = 2 ** 16
+
+
 def _vote(edges, eb, eu, ev, sshape, tshape, max_votes: int, dt):
     """The vote accumulator over placements ``(D-d+1, H-h+1, W-w+1)`` of the R-table ``(eb, eu, ev)`` against
-    the scene's edges (:func:`_scene_edges`), and the total vote count."""
+    the scene's edges (:func:`_scene_edges`), and the total vote count.
+
+    The votes are cast in chunks of :data:`VOTE_CHUNK` (a ``while_loop`` over ``ceil(min(total, max_votes) /
+    chunk)`` chunks), so the work follows the votes there are, not the capacity: the first ``max_votes`` votes,
+    each added once, as one scatter over the whole capacity would (counts are exact integers, so the order of
+    the additions does not change the sums)."""
     order, counts, start = edges
     D, H, W = sshape
     d, h, w = tshape
     ce = jnp.where(ev, counts[eb], 0)
     cum = jnp.cumsum(ce)
     total = cum[-1]
-    p = jnp.arange(max_votes)
-    # vote p belongs to the last entry starting at or before it: mark each entry's first vote with
-    # its index, then a running maximum (O(votes), no binary search)
+    chunk = min(max_votes, VOTE_CHUNK)
+    n_cast = jnp.minimum(total, max_votes)
     first = jnp.where(ce > 0, cum - ce, max_votes)
-    marks = jnp.zeros(max_votes, jnp.int32).at[first].max(jnp.arange(ce.shape[0], dtype=jnp.int32), mode="drop")
-    e = jax.lax.cummax(marks)
-    rank = p - (cum[e] - ce[e])
-    s = order[jnp.clip(start[eb[e]] + rank, 0, D * H * W - 1)]
-    sk = jnp.stack(jnp.unravel_index(s, (D, H, W)), -1)
-    o = sk - eu[e]
+    ent = jnp.arange(ce.shape[0], dtype=jnp.int32)
     lim = jnp.asarray([D - d, H - h, W - w])
-    inside = (p < total) & jnp.all((o >= 0) & (o <= lim), axis=1)
     shp = (D - d + 1, H - h + 1, W - w + 1)
-    flat = jnp.where(inside, (o[:, 0] * shp[1] + o[:, 1]) * shp[2] + o[:, 2], shp[0] * shp[1] * shp[2])
-    A = jnp.zeros(shp[0] * shp[1] * shp[2], dt).at[flat].add(1.0, mode="drop").reshape(shp)
-    return A, total
+    size = shp[0] * shp[1] * shp[2]
+
+    def body(carry):
+        i, A = carry
+        base = i * chunk
+        p = base + jnp.arange(chunk)
+        # vote p belongs to the last entry starting at or before it: the entry holding vote ``base`` (a
+        # binary search, once per chunk), then the entries starting inside the chunk marked at their first
+        # vote and carried forward by a running maximum (O(chunk), no search per vote)
+        e0 = jnp.searchsorted(cum, base, side="right").astype(jnp.int32)
+        rel = jnp.where((first >= base) & (first < base + chunk), first - base, chunk)
+        marks = jnp.zeros(chunk, jnp.int32).at[rel].max(ent, mode="drop")
+        e = jnp.minimum(jnp.maximum(jax.lax.cummax(marks), e0), ce.shape[0] - 1)
+        rank = p - (cum[e] - ce[e])
+        s = order[jnp.clip(start[eb[e]] + rank, 0, D * H * W - 1)]
+        sk = jnp.stack(jnp.unravel_index(s, (D, H, W)), -1)
+        o = sk - eu[e]
+        inside = (p < n_cast) & jnp.all((o >= 0) & (o <= lim), axis=1)
+        flat = jnp.where(inside, (o[:, 0] * shp[1] + o[:, 1]) * shp[2] + o[:, 2], size)
+        return i + 1, A.at[flat].add(1.0, mode="drop")
+
+    n_chunks = (n_cast + chunk - 1) // chunk
+    _, A = jax.lax.while_loop(lambda c: c[0] < n_chunks, body, (jnp.zeros((), n_cast.dtype), jnp.zeros(size, dt)))
+    return A.reshape(shp), total
 
 
 def _accumulate(x, eb, eu, ev, sigma, spacing, edge_contrast, dirs, tshape, max_votes: int):

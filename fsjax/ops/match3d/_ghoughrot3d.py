@@ -24,9 +24,10 @@ R-table is the unturned one carried by ``Rz(a)``, so every angle counts the same
 
 Cost: one translation-only vote per angle, ``n_angles`` of them, and ``2 n_fine + 1`` more per
 instance found (an empty slot casts none, except under ``vmap``, where both branches run). On the
-grid's 48^3 voxel scene with a 24^3 template (one instance): 0.91 s per call where
-:func:`generalised_hough3d` takes 0.05 s (the coarse angles alone, ``n_fine=0``, 0.73 s); compile
-3.0 s of CPU against 2.2 s (2 cores, load 1.2-3.2, 2026-12-05;
+grid's 48^3 voxel scene with a 24^3 template (one instance): 0.26 s per call where
+:func:`generalised_hough3d` takes 0.026 s (the coarse angles alone, ``n_fine=0``, 0.23 s; before the
+votes were cast in chunks as many as there are votes, not over the whole capacity: 0.91, 0.05 and
+0.73 s); compile 3.4 s of CPU against 2.9 s (2 cores, load 2.4-2.6, 2026-12-05;
 ``python benchmarks/bench_hough_rotation.py``). Memory: one angle's votes at a time and the
 ``(n_angles, placements)`` accumulator (36 x 25^3 values there). The alternative, all angles'
 votes in one buffer of ``n_angles`` times the capacity, would cast the same votes in one scatter
