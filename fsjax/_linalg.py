@@ -83,6 +83,33 @@ def jit_fast_compile(fun=None, /, **jit_kwargs):
     return call
 
 
+def filter_jit_fast_compile(fun):
+    """:func:`jit_fast_compile` for functions whose arguments mix arrays with Python values (as
+    ``equinox.filter_jit``): the arrays are traced, every other leaf (ints, floats, strings,
+    tuples of them) is static. At top level compiled with :data:`FAST_COMPILE`; with a tracer
+    among the arguments ``equinox.filter_jit``'s program, traced into the enclosing one."""
+    import equinox as eqx
+
+    plain = eqx.filter_jit(fun)
+
+    @functools.partial(jax.jit, static_argnums=(1, 2), compiler_options=FAST_COMPILE)
+    def fast(dynamic, static_leaves, static_def):
+        args, kwargs = eqx.combine(dynamic, jax.tree_util.tree_unflatten(static_def, static_leaves))
+        return fun(*args, **kwargs)
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        leaves = jax.tree_util.tree_leaves((args, kwargs))
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return plain(*args, **kwargs)
+        dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
+        static_leaves, static_def = jax.tree_util.tree_flatten(static)
+        return fast(dynamic, tuple(static_leaves), static_def)
+
+    call.fast, call.plain = fast, plain
+    return call
+
+
 def _sweeps(n: int) -> int:
     # cyclic Jacobi converges quadratically; 6 sweeps reach float64 round-off for n <= 4, 10 for n <= 8
     return 6 if n <= 4 else 10

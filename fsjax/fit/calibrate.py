@@ -43,7 +43,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from .._linalg import levenberg_marquardt
+from .._linalg import filter_jit_fast_compile, levenberg_marquardt
 from ..render.camera import project
 from ..types import Camera
 from ..types.results import FitResult, reason_code, renamed
@@ -360,7 +360,8 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
         width=width, height=height)
 
 
-@eqx.filter_jit
+# compiled with fsjax._linalg.FAST_COMPILE (calibrate_camera is called eagerly: its start is NumPy)
+@filter_jit_fast_compile
 def _solve_and_std(y0, args, max_steps, rtol, atol, keep, verbose=False):
     sol = _solve(y0, args, max_steps, rtol, atol, verbose)
     y = sol.value

@@ -40,7 +40,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_choice, check_positive, check_range, check_static_int
-from .._linalg import eigh_small
+from .._linalg import eigh_small, jit_fast_compile
 from ..ops import knn
 from ..ops.points._cloud import normals_from_neighbours
 from ..ops.points._search import _BRUTE_LIMIT, build_index
@@ -89,7 +89,7 @@ def _hist(vals, lo, hi, mask):
     return h / jnp.where(s > 0, s, 1.0)
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "normal_k"))
+@jit_fast_compile(static_argnames=("capacity", "normal_k"))
 def _fpfh_core(xyz, valid, normals, radius, *, capacity, normal_k):
     # one neighbour search serves the normals and the histograms (two searches compiled twice the code)
     idx, d2 = knn(xyz, xyz, max(capacity, normal_k) + 1, ref_valid=valid)  # includes the point itself
@@ -500,7 +500,7 @@ def _chance_of_inliers(r, t, ps_u, pt_u, n_match, n_in, n_checked, distance):
     return jnp.where(extra >= 1, jnp.minimum(1.0, n_checked * tail), 1.0)
 
 
-@functools.partial(jax.jit, static_argnames=("n_hypotheses", "min_inliers"))
+@jit_fast_compile(static_argnames=("n_hypotheses", "min_inliers"))
 def _ransac_core(key, ps, pt, ok, distance, edge_ratio, *, n_hypotheses, min_inliers, max_chance):
     dtype = ps.dtype
     n_match = jnp.sum(ok)
@@ -682,7 +682,7 @@ def global_registration(
                         n_truncated=jnp.sum(trs) + jnp.sum(trt))
 
 
-@functools.partial(jax.jit, static_argnames=("rounds",))
+@jit_fast_compile(static_argnames=("rounds",))
 def _point_refit(coarse, xs, xt, vs, vt, distance, rounds):
     r, t = coarse.R, coarse.t
     index = build_index(xt, vt, k=4) if xs.shape[0] * xt.shape[0] > _BRUTE_LIMIT else None  # built once
