@@ -91,3 +91,31 @@ def test_jit_fast_compile_options_only_at_top_level():
     bare = jax.jit(f, static_argnames=("p",), compiler_options=FAST_COMPILE)
     with pytest.raises(ValueError, match="compiler_options"):   # the null: options on a nested jit
         jax.jit(lambda y: bare(y, p=3))(x)
+
+
+def test_filter_jit_fast_compile_mixed_arguments():
+    """The filter form: arrays traced, Python values (ints, tuples, strings, bools) static, as
+    ``equinox.filter_jit``; the fast program at top level (one per static value), the plain one
+    traced under jit and grad. Same values every way."""
+    from fsjax._linalg import filter_jit_fast_compile
+
+    def f(x, args, keep, mode="sum"):
+        a, (w, h) = args
+        y = jnp.sin(x[jnp.asarray(keep)]) * a * w + h
+        return jnp.sum(y) if mode == "sum" else y
+
+    g = filter_jit_fast_compile(f)
+    x = jnp.linspace(0.0, 1.0, 7)
+    xn = np.linspace(0.0, 1.0, 7)
+    ref = np.sin(xn[[0, 2, 5]]) * 2.0 * 3 + 4
+    np.testing.assert_allclose(g(x, (jnp.asarray(2.0), (3, 4)), (0, 2, 5)), ref.sum(), rtol=1e-12)
+    np.testing.assert_allclose(g(x, (jnp.asarray(2.0), (3, 4)), (0, 2, 5), mode="each"), ref, rtol=1e-12)
+    assert g.fast._cache_size() == 2   # a program per static value
+    np.testing.assert_allclose(jax.jit(lambda y: g(y, (2.0 * jnp.ones(()), (3, 4)), (0, 2, 5)))(x), ref.sum(),
+                               rtol=1e-12)
+    gr = jax.grad(lambda y: g(y, (jnp.asarray(2.0), (3, 4)), (0, 2, 5)))(x)
+    want = np.zeros(7)
+    want[[0, 2, 5]] = 6.0 * np.cos(xn[[0, 2, 5]])
+    np.testing.assert_allclose(gr, want, rtol=1e-12)
+    assert float(jnp.max(jnp.abs(gr))) > 0
+    assert g.fast._cache_size() == 2 and g.__name__ == "f"
