@@ -174,12 +174,13 @@ def test_harris3d_repeatability_60deg_70pct_overlap():
 def test_harris3d_fails_closed_and_float32():
     from fsjax.synth import harris3d_repeatability
 
-    g = np.stack(np.meshgrid(np.arange(20.0), np.arange(20.0)), -1).reshape(-1, 2)
+    # the plane, the sphere and the bunny below: one shape and dtype (3,000 float32 points), one program
+    g = np.stack(np.meshgrid(np.arange(60.0), np.arange(50.0)), -1).reshape(-1, 2) / 3.0
     plane = fsjax.Points(jnp.asarray(np.c_[g, 0.3 * g[:, 0] + 0.1 * g[:, 1]], jnp.float32))
     k = ops.harris3d(plane)
     assert int(k.valid.sum()) == 0 and k.xyz.shape == (32, 3)
     sp = np.random.default_rng(0).normal(size=(3000, 3))
-    sphere = fsjax.Points(jnp.asarray(sp / np.linalg.norm(sp, axis=1, keepdims=True)))
+    sphere = fsjax.Points(jnp.asarray(sp / np.linalg.norm(sp, axis=1, keepdims=True), jnp.float32))
     assert int(ops.harris3d(sphere).valid.sum()) == 0
     r = harris3d_repeatability(seed=0, dtype=jnp.float32)
     assert r["keypoints"].xyz.dtype == jnp.float32 and r["repeatability"] >= 0.85
