@@ -181,6 +181,41 @@ def _leaves_with_mask(tree):
     return out
 
 
+def _traced_overflow_eager_grew(x, y) -> bool:
+    """True when the traced record ``x`` is flagged ``truncated`` and the eager ``y`` is not: the
+    registry grows a defaulted ``capacity`` / ``max_neighbors`` in eager calls only, so the traced
+    way reports the overflow (fails closed) where the eager way measured everything. A traced
+    record NOT flagged while the eager one is, or flags that agree, are compared as usual."""
+    import numpy as np
+
+    tx, ty = getattr(x, "truncated", None), getattr(y, "truncated", None)
+    if tx is None or ty is None:
+        return False
+    tx, ty = np.asarray(tx), np.asarray(ty)
+    return tx.dtype == np.bool_ and bool(np.any(tx)) and not bool(np.any(ty))
+
+
+def _undefined_circularity_only(props) -> bool:
+    """True when every NaN in a RegionProps' valid rows is a ``circularity`` whose row's ``perimeter``
+    is 0 (the measure ops document it: "circularity = 4 pi area / perimeter^2, NaN for a zero
+    perimeter"; a one-pixel region has perimeter 0). Any other NaN, or a NaN circularity beside a
+    positive perimeter, or a table without the perimeter column, is not explained."""
+    import numpy as np
+
+    names = list(getattr(props, "names", ()) or ())
+    if "circularity" not in names or "perimeter" not in names:
+        return False
+    table = np.asarray(props.table)
+    rows = np.asarray(props.valid, bool)
+    if table.ndim < 2 or rows.shape != table.shape[:-1]:
+        return False
+    t = table[rows]   # (valid rows over any batch, F)
+    nan = np.isnan(t)
+    ci, pi = names.index("circularity"), names.index("perimeter")
+    others = np.delete(nan, ci, axis=1)
+    return not others.any() and bool(np.all(t[nan[:, ci], pi] == 0))
+
+
 def _nbytes(tree) -> int:
     import jax
 
@@ -207,7 +242,10 @@ def _differ(x, y, dtype: str, nan_only: list | None = None) -> str | None:
     Floating values that are NaN in ``x`` (the traced way) where ``y`` (eager) is finite are
     not counted as a difference when ``nan_only`` is a list: their counts are appended to it,
     and the caller checks the traced output as a NONFINITE candidate instead (a traced way
-    may fail closed where an eager call could size its buffers from the data).
+    may fail closed where an eager call could size its buffers from the data). Likewise a traced
+    record flagged ``truncated`` against an eager one that is not: an eager call whose capacity was
+    left at its default grows it and runs again (``fsjax.registry._grow_when_eager``), a traced
+    call cannot and says so (:func:`_traced_overflow_eager_grew`).
     """
     import jax
     import numpy as np
@@ -222,6 +260,9 @@ def _differ(x, y, dtype: str, nan_only: list | None = None) -> str | None:
     tx, ty = jax.tree_util.tree_structure(x), jax.tree_util.tree_structure(y)
     if tx != ty:
         return "tree structure or static fields differ"
+    if not strict and _traced_overflow_eager_grew(x, y):
+        nan_only.append(0)   # the traced way failed closed: the caller stops comparing this chain
+        return None
     if _both_refused(x, y):
         rx, ry = getattr(x, "reason", None), getattr(y, "reason", None)
         if rx is not None and ry is not None and not np.array_equal(np.asarray(rx), np.asarray(ry)):
@@ -467,6 +508,8 @@ class Runner:
             return
         if type(out).__name__ in ("Feature", "Depth") and not infs:
             return  # documented: a NaN Feature is "could not measure", a NaN depth "no return"
+        if type(out).__name__ == "RegionProps" and not infs and _undefined_circularity_only(out):
+            return  # documented: circularity is NaN for a region of zero perimeter (one pixel)
         if self._documented_neg_inf(op, out, params):
             return
         raise _Fail("NONFINITE", i, op, mode, "inf in the output" if infs else "NaN in the output")

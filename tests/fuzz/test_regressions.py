@@ -492,3 +492,63 @@ def test_reconstruct_keeps_the_promoted_dtype():
         ref = f(m64, fsjax.Image(jnp.asarray(k32.data, jnp.float64)))
         np.testing.assert_array_equal(np.asarray(r.data), np.asarray(ref.data))
         assert f(k32, k32).data.dtype == jnp.float32, name
+
+
+# region_shape of one-pixel regions (regional maxima of the pool's scene, labelled): circularity
+# 4 pi area / perimeter^2 is NaN for a zero perimeter, as the measure ops document; stop 37's full run
+# reported it NONFINITE. The fuzzer reads the documented NaN (fsjax.fuzz._run._undefined_circularity_only):
+# NaN only in the circularity column of valid rows whose perimeter is 0; any other NaN still fails.
+SHAPE_ONE_PIXEL = {"input": {"dtype": "float64", "kind": "scene", "size": [16, 16], "sort": "Image", "variant": 0},
+                   "stages": [{"op": op, "a": None, "b": None, "params": {}, "slot": 0}
+                              for op in ("regional_maxima", "label", "region_shape")]}
+
+
+def test_region_shape_one_pixel_circularity_is_documented_nan(monkeypatch):
+    import equinox as eqx
+    import numpy as np
+
+    from fsjax.fuzz import _run
+
+    specs = [fsjax.get_op(s["op"]) for s in SHAPE_ONE_PIXEL["stages"]]
+    c = fz.Chain.from_json(SHAPE_ONE_PIXEL)
+    assert fz.Runner(specs, grad=False, vmap=False).run(c).status == "ok"
+    img = fz.build_input(fsjax.Image, "scene", (16, 16), "float64")
+    props = fsjax.ops.region_shape(fsjax.ops.label(fsjax.ops.regional_maxima(img)))
+    t = np.asarray(props.table)[np.asarray(props.valid)]
+    ci, pi = props.names.index("circularity"), props.names.index("perimeter")
+    assert np.isnan(t[:, ci]).sum() > 0 and np.all(t[np.isnan(t[:, ci]), pi] == 0)   # NaN exactly at perimeter 0
+    assert _run._undefined_circularity_only(props)
+    other = eqx.tree_at(lambda r: r.table, props, props.table.at[0, props.names.index("area")].set(jnp.nan))
+    assert not _run._undefined_circularity_only(other)   # a NaN area is not explained
+    monkeypatch.setattr(_run, "_undefined_circularity_only", lambda p: False)   # the null: without the rule
+    o = fz.Runner(specs, grad=False, vmap=False).run(c)
+    assert (o.status, o.cls) == ("failed", "NONFINITE"), o
+
+
+# euclidean_cluster on 2,048 surface samples: 116 points have more than max_neighbors = 32 neighbours.
+# Eagerly the registry grows the defaulted max_neighbors and runs again (truncated False); under jit it
+# cannot, and flags truncated. Stop 37's full run reported MISMATCH (`.truncated`). The fuzzer now reads a
+# traced record flagged truncated against an eager one that is not as the traced way failing closed
+# (fsjax.fuzz._run._traced_overflow_eager_grew); the reverse, or other differences with equal flags, still fail.
+CLUSTER_GROWN = {"input": {"dtype": "float64", "kind": "scene", "size": [16, 16], "sort": "Mesh", "variant": 0},
+                 "stages": [{"op": "sample_surface", "a": None, "b": None, "params": {}, "slot": 0},
+                            {"op": "euclidean_cluster", "a": None, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_euclidean_cluster_traced_overflow_where_eager_grew(monkeypatch):
+    import jax
+
+    from fsjax.fuzz import _run
+
+    specs = [fsjax.get_op(s["op"]) for s in CLUSTER_GROWN["stages"]]
+    c = fz.Chain.from_json(CLUSTER_GROWN)
+    assert fz.Runner(specs, grad=False, vmap=False).run(c).status == "ok"
+    pts = fsjax.ops.sample_surface(fz.build_input(fsjax.Mesh, "scene", (16, 16), "float64"))
+    eager = fsjax.ops.euclidean_cluster(pts)
+    traced = jax.jit(fsjax.ops.euclidean_cluster)(pts)
+    assert not bool(eager.truncated) and bool(traced.truncated)
+    assert _run._differ(traced, eager, "float64", []) is None
+    assert _run._differ(eager, traced, "float64", []) is not None   # eager flagged, traced not: a mismatch
+    monkeypatch.setattr(_run, "_traced_overflow_eager_grew", lambda x, y: False)   # the null: without the rule
+    o = fz.Runner(specs, grad=False, vmap=False).run(c)
+    assert (o.status, o.cls) == ("failed", "MISMATCH"), o
