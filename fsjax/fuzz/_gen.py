@@ -211,7 +211,13 @@ def float_dtype(x) -> str | None:
 def extra_input(sort: type, like, dtype: str, variant: int):
     """A pool input of ``sort`` to fill another slot of a multi-input op fed with ``like``."""
     size = raster_size(like) or SIZES[0]
-    return build_input(sort, "scene", size, dtype, variant)
+    x = build_input(sort, "scene", size, dtype, variant)
+    sp = getattr(like, "spacing", None)
+    if sort.__name__ == "Volume" and type(like).__name__ == "Volume" and sp is not None and sp != x.spacing:
+        # the ops that take two volumes need one spacing (ncc3d, lk_translation3d, ...): the pool's
+        # second volume takes the running one's, so they are not refused for a mismatch alone
+        x = sort(x.data, spacing=tuple(sp))
+    return x
 
 
 # ---------------------------------------------------------------------------

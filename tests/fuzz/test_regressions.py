@@ -552,3 +552,21 @@ def test_euclidean_cluster_traced_overflow_where_eager_grew(monkeypatch):
     monkeypatch.setattr(_run, "_traced_overflow_eager_grew", lambda x, y: False)   # the null: without the rule
     o = fz.Runner(specs, grad=False, vmap=False).run(c)
     assert (o.status, o.cls) == ("failed", "MISMATCH"), o
+
+
+# lk_translation3d was never executed in stop 37's full run: the pool's second volume had spacing
+# (2, 1, 1) while the running volume had another, and the op refuses a spacing mismatch (a clear
+# error, so not a failure, but the op went untested). The pool's second volume now takes the running
+# one's spacing (fsjax.fuzz._gen.extra_input).
+def test_extra_volume_takes_the_running_spacing():
+    from fsjax.fuzz._gen import extra_input
+
+    v = fz.build_input(fsjax.Volume, "scene", (16, 16), "float64")
+    assert v.spacing != (1.0, 1.0, 1.0)
+    run = fsjax.Volume(v.data, spacing=(1.0, 1.0, 1.0))
+    e = extra_input(fsjax.Volume, run, "float64", 1)
+    assert e.spacing == run.spacing and e.data.shape == run.data.shape
+    m = fsjax.ops.lk_translation3d(run, e)   # runs (the null below: the pool's own spacing is refused)
+    assert m.t.shape == (3,)
+    with pytest.raises(ValueError, match="lk_translation3d: argument 'template' has spacing"):
+        fsjax.ops.lk_translation3d(run, fz.build_input(fsjax.Volume, "scene", (16, 16), "float64", 1))
