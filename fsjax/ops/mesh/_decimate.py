@@ -179,17 +179,19 @@ def _independent_edges(a, b, is_edge, eligible, prio, nv, passes=_LUBY_PASSES):
     """
     top = jnp.uint32(0xFFFFFFFF)
 
-    def one_pass(_, carry):
-        sel, cand = carry
+    def one_pass(carry):
+        i, sel, cand = carry
         p = jnp.where(cand, prio, top)
         m1 = jnp.full((nv,), top, jnp.uint32).at[a].min(p).at[b].min(p)
         m2 = m1.at[a].min(jnp.where(is_edge, m1[b], top)).at[b].min(jnp.where(is_edge, m1[a], top))
         new = cand & (p == m2[a]) & (p == m2[b])
         taken = jnp.zeros((nv,), bool).at[a].max(new).at[b].max(new)
         near = _spread(taken, a, b, is_edge)
-        return sel | new, cand & ~new & ~near[a] & ~near[b]
+        return i + 1, sel | new, cand & ~new & ~near[a] & ~near[b]
 
-    sel, _ = lax.fori_loop(0, passes, one_pass, (jnp.zeros_like(eligible), eligible))
+    # the passes stop early once no candidate is left (the result is the same)
+    _, sel, _ = lax.while_loop(lambda c: (c[0] < passes) & jnp.any(c[2]), one_pass,
+                               (jnp.asarray(0, jnp.int32), jnp.zeros_like(eligible), eligible))
     return sel
 
 
