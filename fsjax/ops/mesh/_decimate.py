@@ -13,12 +13,14 @@ Conventions:
   perpendicular to its face, weighted ``boundary_weight`` times the edge length squared;
   an interior edge joining two boundary vertices is never collapsed (it would pinch).
 * **Parallel rounds** instead of a priority queue: each round takes the cheapest eighth of
-  the legal edges as eligible (costs bucketed by factors of sqrt(2); two histograms, the cost
+  the legal edges as eligible or, while far from the target, as many as twice the collapses
+  still needed, but none more than four sqrt(2) cost buckets dearer than the eighth's cut
+  (costs bucketed by factors of sqrt(2); two histograms, the cost
   bucket and then a hash of the edge inside the last bucket, find the cut without a sort) and,
   as in Luby's independent sets, selects an eligible edge when its random priority (the hash,
   made unique by the edge's slot in its low bits) is the smallest among the candidates within
-  one edge of either endpoint; six such passes run per round, the candidates near a selected
-  edge dropping out after each. Selected edges are therefore at least two edges apart: their
+  one edge of either endpoint; up to six such passes run per round (fewer once no candidate
+  is left), the candidates near a selected edge dropping out after each. Selected edges are therefore at least two edges apart: their
   neighbourhoods do not touch and they collapse at once, correctly (Papageorgiou and Platis
   2015 use an independence rule of this kind on the GPU). A round refuses a collapse that
   breaks the link condition (the endpoints share other neighbours than the edge's own
@@ -36,6 +38,13 @@ Conventions:
 * Memory ``O(F)``. The edges are found by one sort before the first round; their slots then
   persist (a collapse renames its endpoints and merges the edge to each apex into its twin), so
   a round sorts nothing (the last one sorts its collapses by cost to land on the target).
+* **Compaction**: the rounds run in three stages of array capacity (``F``, ``F / 2``,
+  ``F / 4`` faces and three edge slots per face): when the valid faces fit the next capacity,
+  they and the edge slots they use move to the front of smaller arrays, in their order, so
+  priorities and ties compare as before and the result is the same as without compaction
+  (checked bit for bit on fandisk); the cost of a round then follows the faces left. Each
+  stage is its own loop body: compile time is about three rounds' worth (~11 s CPU on
+  fandisk against ~4 s without compaction).
 """
 
 from __future__ import annotations
@@ -443,7 +452,7 @@ def decimate(mesh: Mesh, /, *, ratio: float = 0.1, target_faces: int | None = No
       boundary_weight: weight of the boundary constraint planes relative to the face
         planes (default 1000: boundaries stay put).
       max_rounds: cap on the rounds of parallel collapses (static; default 2000). The loop
-        stops at the target (fandisk 12,946 -> 1,294 faces takes ~55-75 rounds).
+        stops at the target (fandisk 12,946 -> 1,294 faces takes ~50 rounds).
 
     Returns:
       ``Mesh`` with the input's array shapes; removed faces and vertices are marked invalid.

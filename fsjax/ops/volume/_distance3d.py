@@ -16,7 +16,9 @@ Conventions:
 * Exactness: with unit spacing every squared distance is an integer computed exactly
   (float64; float32 while below ``2**24``), so the result is the correctly rounded
   square root, bit-identical to SciPy's.
-* Batching is ``jax.vmap``; the data-dependent loops run until every member is done.
+* Batching is ``jax.vmap``; under it the members are computed one after the other
+  (``lax.map``: batched lanes ran the stack pops of all members in lock-step, on B times
+  the working set, slower).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jax import lax
 
 from ..._checks import check_finite_number
 from ...registry import register
@@ -41,12 +44,43 @@ def _along(f, axis: int, fn):
     return jnp.moveaxis(out, 0, axis)
 
 
-def edt3d_squared(bg, spacing, dtype):
-    """Squared exact Euclidean distance to the nearest ``True`` voxel of ``bg`` ``(D, H, W)``."""
-    dz, dy, dx = (float(s) for s in spacing)
+def _edt3d_squared_one(bg, spacing, dtype):
+    dz, dy, dx = spacing
     g = _along(bg, 2, lambda b: _line_dist(b, dtype)) * dx
     f = _along(g * g, 1, lambda v: _parabola_envelope(v, dy))
     return _along(f, 0, lambda v: _parabola_envelope(v, dz))
+
+
+@functools.lru_cache(maxsize=64)
+def _edt3d_squared_fn(spacing, dtype):
+    """``_edt3d_squared_one`` for fixed spacing and dtype, batched by ``lax.map`` under ``vmap``.
+
+    Batched lanes would run the envelope passes of all members in lock-step on B times the
+    lanes: the linked-list stacks (``n`` x lanes) leave the cache and every member waits for
+    the longest chain of pops. One member after the other is faster (128^3, B = 4: see
+    ``docs/benchmarks_volume.md``).
+    """
+
+    @jax.custom_batching.custom_vmap
+    def f(bg):
+        return _edt3d_squared_one(bg, spacing, dtype)
+
+    @f.def_vmap
+    def _rule(axis_size, in_batched, bg):
+        if not in_batched[0]:
+            return f(bg), False
+        return lax.map(f, bg), True
+
+    return f
+
+
+def edt3d_squared(bg, spacing, dtype):
+    """Squared exact Euclidean distance to the nearest ``True`` voxel of ``bg`` ``(D, H, W)``.
+
+    Under ``jax.vmap`` the members are computed one after the other (``lax.map``), not as
+    batched lanes.
+    """
+    return _edt3d_squared_fn(tuple(float(s) for s in spacing), jnp.dtype(dtype))(bg)
 
 
 @functools.partial(jax.jit, static_argnames=("spacing",))
