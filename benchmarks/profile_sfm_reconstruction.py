@@ -101,7 +101,8 @@ class _Instrument:
         def pnp_wrap(*a, **k):
             t0 = time.perf_counter()
             out = jax.block_until_ready(pnp(*a, **k))
-            self.calls.append(dict(kind="pnp", shape=(a[1].shape[0],), s=time.perf_counter() - t0))
+            self.calls.append(dict(kind="pnp", shape=(a[1].shape[0],), inliers=int(out.n_inliers),
+                                   s=time.perf_counter() - t0))
             return out
 
         mod.bundle_adjust_masked, mod.solve_pnp_ransac = ba_wrap, pnp_wrap
@@ -163,8 +164,11 @@ def main(argv=None):
               f"{sorted({c['shape'] for c in bas}, key=str)}; PnP calls "
               f"{sum(c['kind'] == 'pnp' for c in calls)}, {sum(c['s'] for c in calls if c['kind'] == 'pnp'):.3f} s "
               "(last repeat)")
-        for c in bas:
-            print(f"    BA {c['shape']} active obs {c['active']}, {c['iterations']}/{c['max_iter']} it, {c['s']:.3f} s")
+        for c in calls:
+            if c["kind"] == "ba":
+                print(f"    BA {c['shape']} active obs {c['active']}, {c['iterations']}/{c['max_iter']} it, {c['s']:.3f} s")
+            else:
+                print(f"    PnP {c['shape']}, {c['inliers']} inliers, {c['s']:.3f} s")
     print(f"\nload {load_average()}")
 
 
