@@ -4,8 +4,8 @@ Why not :func:`fsjax.fit.bundle_adjust` directly: an incremental reconstruction 
 adjustment after every registered image, with a growing set of cameras, points and observations.
 Each new shape would be a new XLA compile (seconds each). Here capacities are padded: what is not
 in the problem has weight 0 (observations) or is frozen (cameras, points), so one compiled solver
-serves every problem of a bucket (:func:`fsjax.sfm.reconstruct` pads each problem to power-of-two
-buckets of its points, observations and observation pairs: herzjesu-P8 compiles four).
+serves every problem of a bucket (:func:`fsjax.sfm.reconstruct` pads each problem to one power-of-two
+level of its observations, points and observation pairs: herzjesu-P8 compiles three).
 
 Model: camera ``i`` maps world to camera as ``x = R_i X + t_i`` (``camera_from_world``), updated
 as ``R_i <- exp(dw) R_i``, ``t_i <- t_i + dt``; points ``X_p <- X_p + dX``; shared intrinsics ``K``

@@ -33,7 +33,8 @@ Stages (each timed; ``Reconstruction.times_s``):
    registered views and the points they see; other views observing those points stay fixed);
    observations beyond ``max_reproj_px`` are then dropped. A final global bundle adjustment runs
    to convergence (relative cost decrease < 1e-6). Each problem is compacted to what it holds and
-   padded to power-of-two buckets (one compile per bucket).
+   padded to a power-of-two level (observations, points half of them, observation pairs 1.5x
+   them): one compile per level.
 
 Every image left out carries a reason (``Reconstruction.reasons``).
 Poses are ``camera_from_world`` (``R``, ``t``: ``x = R X + t``), OpenCV camera frame, pixels
@@ -406,8 +407,11 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
             k = np.nonzero(obs_ok & pts[tid])[0]
         up, pk = np.unique(tid[k], return_inverse=True)
         o_, m_ = len(k), len(up)
-        oc, mc = _bucket(o_, 1024), _bucket(m_, 512)
         prs = observation_pairs(pk)
+        # one bucket level for the three capacities (observations oc, points oc / 2, pairs 1.5 oc), so
+        # a run compiles one program per level (fountain-P11: 4) rather than per combination (6)
+        oc = _bucket(max(o_, 2 * m_, -(-2 * len(prs) // 3)), 1024)
+        mc, pc = oc // 2, 3 * oc // 2
         free = np.zeros((nc, 6))
         free[:n][cams] = 1
         free[a0] = 0
@@ -421,8 +425,7 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
                                    jnp.asarray(np.pad(pk, (0, oc - o_)), jnp.int32),
                                    jnp.asarray(_pad(obs_uv[k], oc, 0.0)), jnp.asarray(np.arange(oc) < o_),
                                    jnp.asarray(free), jnp.asarray(np.arange(mc) < m_),
-                                   obs_pairs=jnp.asarray(observation_pairs(pk, _bucket(len(prs), 1024)) if len(prs)
-                                                         else np.full((1024, 2), -1, np.int32)),
+                                   obs_pairs=jnp.asarray(np.concatenate([prs, np.full((pc - len(prs), 2), -1, np.int32)])),
                                    max_iter=iters, tol=ba_tol)
         Rn, tn, Xn, rms, it = jax.block_until_ready(out)
         R[cams], t[cams] = np.asarray(Rn)[:n][cams], np.asarray(tn)[:n][cams]
@@ -430,7 +433,8 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
         refresh()
         ba_time[0] += time.perf_counter() - tb
         ba_log.append(dict(kind="global" if local is None else "local", cameras=int(cams.sum()), points=m_,
-                           observations=o_, iterations=int(it)))
+                           observations=o_, pairs=len(prs), bucket=(mc, oc, pc),
+                           iterations=int(it)))
         return float(rms)
 
     triangulate()
