@@ -1,11 +1,18 @@
-"""Bundle adjustment over observation lists: the Schur complement summed over pairs of observations
-of one point equals the dense camera x point coupling; the fit recovers perturbed cameras."""
+"""Bundle adjustment over observation lists: the Schur complement summed over the unordered pairs of
+observations of one point (and their transposes) equals the dense camera x point coupling; the fit
+recovers perturbed cameras."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from fsjax.fit.rigid import so3_exp
-from fsjax.sfm.bundle import bundle_adjust_masked, observation_pairs
+from fsjax.sfm.bundle import (
+    _project,
+    _residual_and_jacobian,
+    bundle_adjust_masked,
+    observation_pairs,
+)
 
 
 def _scene(seed=0, n_cam=5, n_pt=60):
@@ -28,7 +35,7 @@ def _scene(seed=0, n_cam=5, n_pt=60):
 def test_observation_pairs_lists_every_pair_of_a_point():
     pi = np.array([3, 1, 3, 0, 3, 1])
     got = {tuple(p) for p in observation_pairs(pi)}
-    want = {(a, b) for a in range(6) for b in range(6) if pi[a] == pi[b]}
+    want = {(a, b) for a in range(6) for b in range(a + 1, 6) if pi[a] == pi[b]}  # unordered, a < b
     assert got == want and len(observation_pairs(pi)) == len(want)
     padded = observation_pairs(pi, 20)
     assert padded.shape == (20, 2) and np.all(padded[len(want):] == -1)
@@ -60,3 +67,20 @@ def test_pair_schur_equals_dense_and_fits():
     # the fit itself: reprojection RMS near the pixel noise (0.3 px per axis), far below the start's
     start = bundle_adjust_masked(*args, max_iter=0)
     assert float(pairs[3]) < 0.5 < float(start[3])
+
+
+def test_analytic_jacobian_equals_autodiff():
+    K, R, t, X, ci, pi, uv = _scene(seed=2)
+    for k in (0, 7, 40):
+        c, p = ci[k], pi[k]
+
+        def f(d, c=c, p=p, k=k):
+            return _project(jnp.asarray(K), so3_exp(d[:3]) @ jnp.asarray(R[c]), t[c] + d[3:6], X[p] + d[6:]) - uv[k]
+
+        d0 = jnp.zeros(9)
+        r, J = _residual_and_jacobian(jnp.asarray(K), jnp.asarray(uv[k]), jnp.asarray(R[c]), jnp.asarray(t[c]),
+                                      jnp.asarray(X[p]))
+        np.testing.assert_allclose(np.asarray(r), np.asarray(f(d0)), rtol=1e-12, atol=1e-9)
+        J_ad = np.asarray(jax.jacfwd(f)(d0))
+        assert np.abs(J_ad).min() < np.abs(J_ad).max() and np.abs(J_ad[:, :3]).max() > 1.0  # not a zero Jacobian
+        np.testing.assert_allclose(np.asarray(J), J_ad, rtol=1e-10, atol=1e-8)

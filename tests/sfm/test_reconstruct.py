@@ -52,6 +52,20 @@ def test_three_views_registered_and_accurate(views, rec):
     assert flags[(0, 1)] == flags[(1, 2)] == "ok"
 
 
+def test_local_bundle_adjustment_path(views, rec):
+    # no global BA until the final one: the third view is refined by a local BA of itself and its
+    # most covisible view; the other view observing those points stays fixed
+    imgs, (K, Rs, Cs) = views
+    loc = reconstruct(imgs, K, names=list(NAMES), global_ba_growth=1e9, local_ba_views=2, **KW)
+    kinds = [(c["kind"], c["cameras"]) for c in loc.ba_calls]
+    assert ("local", 2) in kinds and kinds[-1][0] == "global", kinds
+    assert [c for c in rec.ba_calls if c["kind"] == "local"] == []  # three views: every step grows > 1.1x
+    assert loc.registered.all() and loc.rms_px < 1.0
+    rot, cen = _errors(loc, Rs, Cs)
+    baseline = np.linalg.norm(np.array(Cs)[0] - np.array(Cs)[2])
+    assert rot.max() < 0.3 and cen.max() < 0.01 * baseline, (rot, cen, baseline)
+
+
 def test_shuffled_order_gives_the_same_cameras(views, rec):
     imgs, (K, Rs, Cs) = views
     order = [2, 0, 1]
