@@ -318,19 +318,21 @@ def _batched(fn, arrays, B, n=None):
     return tuple(o.reshape(nb * B, *o.shape[2:])[:m] for o in outs)
 
 
-_REDO_SKIP = True  # _redo skips its row compaction when no row is flagged (a probe knob)
+_REDO_SKIP = True  # _redo(skip=True) skips its row compaction when no row is flagged (a probe knob)
 
 
-def _redo(todo_mask, B, fn, outs):
+def _redo(todo_mask, B, fn, outs, skip=False):
     """Recompute the rows flagged in ``todo_mask`` with ``fn(rows (B,)) -> new rows``, B at a time.
 
     A ``while_loop`` over the compacted row list: the cost follows the number of flagged
-    rows, not the total.
+    rows, not the total. ``skip`` (static): a ``lax.cond`` skips the compaction when no row is
+    flagged (ICP's warm-started search, where most passes get none; elsewhere it added ~0.5 s of
+    compile to ``knn`` at 20,000 points, 168 -> 179 distinct kernels, for no run time shown).
     """
     m = todo_mask.shape[0]
     nb = -(-m // B)
     n_todo = jnp.sum(todo_mask)
-    if _REDO_SKIP:  # no flagged row: skip the compaction too (a lax.cond: a select under vmap)
+    if skip and _REDO_SKIP:  # no flagged row: skip the compaction too (a lax.cond: a select under vmap)
         return lax.cond(n_todo > 0, lambda o: _redo_rows(todo_mask, B, fn, o, m, nb, n_todo), lambda o: o,
                         tuple(outs))
     return _redo_rows(todo_mask, B, fn, outs, m, nb, n_todo)
@@ -811,7 +813,7 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
             todo = ~cert if live is None else ~cert & live
             # the rows the warm pass did not answer: the fixed first pass, as without it
             d2, idx, cert, over = _redo(todo, B1, lambda sel: fixed_pass(qry[sel], C1),
-                                        (d2, idx, cert, jnp.zeros(cert.shape, bool)))
+                                        (d2, idx, cert, jnp.zeros(cert.shape, bool)), skip=True)
         # the queries whose block holds more than C1 points: the same 27 cells scanned in full, the
         # first pass of the fallback chain below (few on an index sized for k; most when a k = 1 query
         # meets an index sized for k = 10: ICP now queries with the width of its normals' k instead;
@@ -826,7 +828,7 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
         over = None
     if _LOOP:
         d2, idx, cert = _chain_loop(g, qry, k, (d2, idx, cert), approx, gated, S, kth, live, over,
-                                    _ONE_GROUP if one_group is None else one_group, select)
+                                    _ONE_GROUP if one_group is None else one_group, select, skip_empty=warm is not None)
     else:
         # not answered: the 5 x 5 x 5 block of the same grid
         # (smaller batches in float64, whose loop passes measured ~10x slower than float32's in XLA:CPU)
@@ -865,7 +867,7 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
 
 
 def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S, kth=None, live=None, over=None, one_group=False,
-                select=None):
+                select=None, skip_empty=False):
     """The fallback chain of :func:`_query_grid_knn` after its first pass, as two looped bodies.
 
     The passes, in order: the fine 5 x 5 x 5 block; (approximate mode) the representatives'
@@ -925,7 +927,7 @@ def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S, kth=None, live=Non
             todo = ~done(outs[0], outs[2]) & (use_approx | ~rep[i])
             if over is not None:
                 todo = todo & (over | ~only_over[i])
-            return _redo(todo, B, one, outs)
+            return _redo(todo, B, one, outs, skip=skip_empty)
 
         return lax.fori_loop(0, len(passes), body, tuple(outs))
 
