@@ -326,6 +326,9 @@ def _progress_line(it, n_ok, rms, step_deg, exact):
           f"{float(step_deg):.3g} deg{'' if bool(exact) else ' (approximate neighbours)'}", flush=True)
 
 
+_WARM_START = True  # the correspondence search starts from the last turn's pairs (a probe knob; same answers)
+
+
 # At top level (an eager call of icp) the program compiles with FAST_COMPILE (XLA:CPU's older loop
 # emitters, optimisation level pinned to 2; see fsjax._linalg): at 20,000 points, float32, one
 # process, interleaved (python benchmarks/compile_knn.py --ab), compile CPU 4.7 -> 2.7 s
@@ -401,7 +404,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         refs_all = structures(_brute_refs)
         bsz = _brute_batch(n_q, n_q if two else n_tgt)
 
-        def nearest(x, k_used, n_rows, approx, gate, which=0):  # exact always (small problems)
+        def nearest(x, k_used, n_rows, approx, gate, which=0, warm=None):  # exact always (small problems)
             refs = pick(refs_all, which)
             d2, idx, _ = _batched(lambda q: _brute_queries(refs, q, kmax), (x,), bsz, n_rows)
             miss = (jnp.arange(kmax)[None, :] >= k_used) | (jnp.arange(n_q)[:, None] >= n_rows) | (d2 > gate**2)
@@ -409,10 +412,12 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     else:
         index_all = structures(lambda x, v: build_index(x, v, k=10, coarse=True))
 
-        def nearest(x, k_used, n_rows, approx, gate, which=0):
+        def nearest(x, k_used, n_rows, approx, gate, which=0, warm=None):
             # the fallback passes in one looped body: ~18 % less compile, ~8 % more run time at
-            # 20,000 points (one process, float32; docs/benchmarks_icp.md)
-            return _query_grid_knn(pick(index_all, which), x, kmax, approx, gate**2, k_used, n_rows, one_group=True)
+            # 20,000 points (one process, float32; docs/benchmarks_icp.md). ``warm``: the last turn's
+            # pairs, whose distances bound the search (same answers, fewer candidates; see _warm_pass)
+            return _query_grid_knn(pick(index_all, which), x, kmax, approx, gate**2, k_used, n_rows, one_group=True,
+                                   warm=warm)
 
     def pad_rows(x):
         return x if x.shape[0] == n_q else jnp.concatenate([x, jnp.zeros((n_q - x.shape[0], 3), x.dtype)])
@@ -487,7 +492,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     # come from exact correspondences (the evaluation turn is exact). A first turn (``first``)
     # searches the target's own neighbours instead and only sets ``aux`` and the inlier distance.
     def body(st):
-        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl, src_self, cs, hist = st
+        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl, src_self, cs, hist, jprev = st
         stop = ~first & (done | (bad != OK) | (it >= max_iterations))
         p = src @ r.T + t
         # first turns: the source's own neighbours (GICP only), then the target's; then the pairs
@@ -495,14 +500,14 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         self_n = jnp.where(src_self, n_src, n_tgt) if two else n_tgt
         idx, d2 = nearest(jnp.where(first, self_x, pad_rows(p)), jnp.where(first, k_self, 1),
                           jnp.where(first, self_n, n_src), ~first & ~exact & ~stop, jnp.where(first, jnp.inf, gate),
-                          (first & src_self).astype(jnp.int32))
+                          (first & src_self).astype(jnp.int32), jnp.where(first, -1, jprev) if _WARM_START else None)
 
         def first_turn(_):
             if two:
                 def src_turn(_):  # the covariances of local_covariances(src, sv, k=cov_k)
                     cov, _ = _cov_from_idx(src, idx[:n_src, :cov_k])
                     cs2 = _gicp_cov(jnp.where(sv[:, None, None], cov, jnp.nan))
-                    return st[:16] + (jnp.bool_(False), cs2, hist)
+                    return st[:16] + (jnp.bool_(False), cs2) + st[18:]
 
                 def tgt_turn(_):
                     aux2, inl2 = from_self(idx, d2, aux, inl)
@@ -547,7 +552,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
                     jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
                     jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled,
-                    best2, since2, wmax2, first, aux, inl, src_self, cs, hist2)
+                    best2, since2, wmax2, first, aux, inl, src_self, cs, hist2, idx[:, 0])
 
         return jax.lax.cond(first, first_turn, turn, None)
 
@@ -556,7 +561,8 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             jnp.bool_(brute), jnp.asarray(jnp.inf, dtype), jnp.int32(0), jnp.asarray(0.0, dtype),
             jnp.bool_(need_self), aux0, inlier0, jnp.bool_(two),
             jnp.zeros((n_src, 3, 3) if two else (1,), dtype),
-            (jnp.full((_CYCLE_ITERS, 3, 3), jnp.nan, dtype), jnp.full((_CYCLE_ITERS, 3), jnp.nan, dtype)))
+            (jnp.full((_CYCLE_ITERS, 3, 3), jnp.nan, dtype), jnp.full((_CYCLE_ITERS, 3), jnp.nan, dtype)),
+            jnp.full((n_q,), -1, jnp.int32))
     out = jax.lax.while_loop(cond, body, init)
     it, r, t, done, bad, n_ok, d2a, ok = out[:8]
     inlier_dist = out[15]

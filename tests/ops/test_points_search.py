@@ -507,3 +507,49 @@ def test_one_program_for_several_k_and_query_counts():
         assert np.all(idx[:, k_used:] == -1) and np.all(np.isinf(d2[:, k_used:]))
         assert np.all(idx[n_q:] == -1) and np.all(np.isinf(d2[n_q:]))
     assert len(calls) == 1  # one program for the three
+
+
+def test_warm_started_query_equals_the_plain_one():
+    """``warm`` (ICP's last correspondences): the previous neighbour's distance bounds the search.
+    Same answers as without it, bit for bit, in the exact and the approximate mode, whatever the
+    previous neighbours are (good ones 0.2 deg earlier, random ones, missing, invalid points), and
+    for k_used > 1 (where it is ignored); the null: the warm pass really answers most near rows."""
+    from fsjax.data import surface_points
+    from fsjax.fit.rigid import rotation_from_axis_angle
+    from fsjax.ops import build_index
+    from fsjax.ops.points._search import _WARM_SLOTS, _batched, _query_grid_knn, _warm_pass
+
+    ref = surface_points("bunny", 3000, 0)
+    valid = np.arange(3000) % 11 != 0
+    rot = np.asarray(rotation_from_axis_angle(jnp.array([0.3, 1.0, -0.4]), 30.0))
+    small = np.asarray(rotation_from_axis_angle(jnp.array([1.0, -0.2, 0.5]), 0.2))
+    near = surface_points("bunny", 2000, 1)
+    q = np.concatenate([near, near[:1000] @ rot.T])  # near and far (30 deg) queries
+    q[-20:] += 0.1
+    ix = jax.jit(lambda r, v: build_index(r, v, k=10, coarse=True))(jnp.asarray(ref), jnp.asarray(valid))
+    n = len(q)
+
+    @jax.jit
+    def f(ix, q, approx, k_used, warm):
+        return _query_grid_knn(ix, q, 10, approx, jnp.asarray(np.inf), k_used, n, one_group=True, warm=warm)
+
+    @jax.jit
+    def plain(ix, q, approx, k_used):
+        return _query_grid_knn(ix, q, 10, approx, jnp.asarray(np.inf), k_used, n, one_group=True)
+
+    prev = np.asarray(plain(ix, jnp.asarray(q @ small.T), False, 1)[0][:, 0])
+    rng = np.random.default_rng(0)
+    warms = {"previous": prev, "random": rng.integers(0, 3000, n), "missing": np.full(n, -1),
+             "invalid": np.full(n, 11)}
+    for approx in (False, True):
+        for k_used in (1, 4):
+            want = [np.asarray(a) for a in plain(ix, jnp.asarray(q), approx, k_used)]
+            for name, w in warms.items():
+                got = [np.asarray(a) for a in f(ix, jnp.asarray(q), approx, k_used, jnp.asarray(w, jnp.int32))]
+                assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]), (approx, k_used, name)
+    idx, d2 = (np.asarray(a) for a in plain(ix, jnp.asarray(q), False, 1))
+    assert _check_knn(ref, q, 1, idx[:, :1], d2[:, :1], valid=valid) == n
+    answered = jax.jit(lambda ix, q, w: _batched(lambda a, b: _warm_pass(ix, a, b, 10, _WARM_SLOTS), (q, w), 1000)[2])
+    got = np.asarray(answered(ix, jnp.asarray(q), jnp.asarray(prev, jnp.int32)))
+    assert got[:2000].mean() > 0.8 and got[-20:].sum() == 0
+    assert not np.asarray(answered(ix, jnp.asarray(q), jnp.full(n, 11, jnp.int32))).any()

@@ -318,16 +318,28 @@ def _batched(fn, arrays, B, n=None):
     return tuple(o.reshape(nb * B, *o.shape[2:])[:m] for o in outs)
 
 
-def _redo(todo_mask, B, fn, outs):
+_REDO_SKIP = True  # _redo(skip=True) skips its row compaction when no row is flagged (a probe knob)
+
+
+def _redo(todo_mask, B, fn, outs, skip=False):
     """Recompute the rows flagged in ``todo_mask`` with ``fn(rows (B,)) -> new rows``, B at a time.
 
     A ``while_loop`` over the compacted row list: the cost follows the number of flagged
-    rows, not the total.
+    rows, not the total. ``skip`` (static): a ``lax.cond`` skips the compaction when no row is
+    flagged (ICP's warm-started search, where most passes get none; elsewhere it added ~0.5 s of
+    compile to ``knn`` at 20,000 points, 168 -> 179 distinct kernels, for no run time shown).
     """
     m = todo_mask.shape[0]
     nb = -(-m // B)
-    todo = jnp.nonzero(todo_mask, size=nb * B, fill_value=m)[0].astype(jnp.int32)
     n_todo = jnp.sum(todo_mask)
+    if skip and _REDO_SKIP:  # no flagged row: skip the compaction too (a lax.cond: a select under vmap)
+        return lax.cond(n_todo > 0, lambda o: _redo_rows(todo_mask, B, fn, o, m, nb, n_todo), lambda o: o,
+                        tuple(outs))
+    return _redo_rows(todo_mask, B, fn, outs, m, nb, n_todo)
+
+
+def _redo_rows(todo_mask, B, fn, outs, m, nb, n_todo):
+    todo = jnp.nonzero(todo_mask, size=nb * B, fill_value=m)[0].astype(jnp.int32)
 
     def cond(st):
         return st[0] * B < n_todo
@@ -620,10 +632,83 @@ def _fixed_slots(k: int) -> int:
 _B2 = 32  # queries per batch in the fallback passes
 _COND_K1 = True  # traced k_used: the first pass selects by a min when k_used == 1 (a probe knob)
 _ONE_GROUP = False  # True: every pass in one group, narrow batches (compile -25 %, run +10-25 %; a probe knob)
+# candidates per query and step of the fallback chain's narrow group, in units of S: 8 (many-candidate
+# coarse passes); with ``one_group`` (ICP: the fine 125-cell and representatives' passes in the same
+# group, which most far queries of the first iterations reach with ~50-150 candidates) 2: at 20,000
+# bunny points, float32, k = 1 of width 10 at 10 deg, approximate 112 -> 77 ms, exact 227 -> 210 ms,
+# same answers (benchmarks/profile_icp_iter.py --ab, docs/benchmarks_icp.md)
+_S2_ONE = 2
 _LOOP = True  # the fallback chain as one looped body (False: each pass its own copy; a probe knob)
 
 
-def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, n_q=None, one_group=None):
+_WARM_SLOTS = 32  # candidates of the warm-started pass (the cells of the previous neighbour's ball)
+_WARM_SPAN = 2  # cells per axis the ball may meet (2: 4 runs; 3: 9 runs, a few more rows answered)
+
+
+def _warm_pass(g: GridIndex, q, jp, k, C):
+    """Nearest indexed point of each query from a previous neighbour ``jp`` (original index, -1: none).
+
+    The distance ``r`` from the query to the point ``jp`` bounds the nearest distance, so the
+    nearest lies in the ball of radius ``r`` around the query, inside the cells the ball meets
+    (at most ``_WARM_SPAN`` per axis; their rows of cells are at most ``_WARM_SPAN^2`` runs of the sorted array). A row is answered
+    when those cells lie within the query's own 27-cell block (so the answer is also the nearest of
+    that block: the approximate mode's answer too) and hold at most ``C`` points; it is then the
+    nearest of those candidates with the first pass's tie rule (the smallest sorted position), the
+    same answer as the exact passes (every point at the nearest distance lies in the ball).
+    Returns ``(d2 (B, k), idx (B, k), answered (B,))``, columns past the first missing.
+    """
+    eps = jnp.finfo(q.dtype).eps
+    lo, h, dims = g.lo, g.h, g.dims
+    b = q.shape[0]
+    top = g.cstart.shape[0] - 1
+    ok_j = (jp >= 0) & (jp < g.ref.shape[0])
+    jc = jnp.clip(jp, 0, g.ref.shape[0] - 1)
+    ok_j = ok_j & g.valid[jc]
+    pj = g.ref[jc]
+    d2p = ((pj[:, 0] - q[:, 0]) ** 2 + (pj[:, 1] - q[:, 1]) ** 2) + (pj[:, 2] - q[:, 2]) ** 2
+    u = (q - lo) / h
+    # the ball's cell range per axis, widened by a rounding margin (a point of the ball is binned by
+    # the same (p - lo) / h, floor; its coordinate lies within r of the query's)
+    rr = (jnp.sqrt(d2p) / h * (1 + 1e-4))[:, None] + 64 * eps * (jnp.abs(u) + 1)
+    c = jnp.floor(u)
+    cmax = (dims - 1).astype(u.dtype)
+    c0 = jnp.clip(jnp.floor(u - rr), 0, cmax)
+    c1 = jnp.clip(jnp.floor(u + rr), 0, cmax)
+    inside = ok_j & jnp.isfinite(d2p) & jnp.all((c0 >= c - 1) & (c1 <= c + 1) & (c0 <= c1)
+                                                 & (c1 - c0 < _WARM_SPAN), axis=1)
+    c0 = jnp.where(inside[:, None], c0, 0).astype(jnp.int32)
+    c1 = jnp.where(inside[:, None], c1, 0).astype(jnp.int32)
+    offs = [(dz, dy) for dz in range(_WARM_SPAN) for dy in range(_WARM_SPAN)]
+    dz = jnp.asarray([o[0] for o in offs], jnp.int32)[None]
+    dy = jnp.asarray([o[1] for o in offs], jnp.int32)[None]
+    z, y = c0[:, 2:3] + dz, c0[:, 1:2] + dy
+    okr = (z <= c1[:, 2:3]) & (y <= c1[:, 1:2])
+    row = (jnp.minimum(z, dims[2] - 1) * dims[1] + jnp.minimum(y, dims[1] - 1)) * dims[0]
+    start = g.cstart[jnp.clip(row + c0[:, 0:1], 0, top)]
+    length = jnp.where(okr, g.cstart[jnp.clip(row + c1[:, 0:1] + 1, 0, top)] - start, 0)
+    cum = jnp.cumsum(length, axis=1)
+    first = cum - length
+    s = jnp.arange(C, dtype=jnp.int32)[None, :]
+    off = start - first
+    o = jnp.broadcast_to(off[:, :1], (b, C))
+    for t in range(1, len(offs)):
+        o = jnp.where(s >= first[:, t:t + 1], off[:, t:t + 1], o)
+    ok = s < cum[:, -1:]
+    pos = jnp.where(ok, o + s, 0)
+    dx, dyy, dzz = (g.spts[:, i][pos] - q[:, i:i + 1] for i in range(3))
+    d2 = jnp.where(ok, (dx * dx + dyy * dyy) + dzz * dzz, jnp.inf)
+    v, i, _ = _select_flag(d2, pos, 1)
+    answered = inside & (cum[:, -1] <= C) & jnp.isfinite(v[:, 0])
+    v = jnp.where(answered[:, None], v, jnp.inf)
+    idx = jnp.where(answered[:, None], g.order[i], -1)
+    if k > 1:
+        v = jnp.concatenate([v, jnp.full((b, k - 1), jnp.inf, v.dtype)], 1)
+        idx = jnp.concatenate([idx, jnp.full((b, k - 1), -1, idx.dtype)], 1)
+    return v, idx, answered
+
+
+def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, n_q=None, one_group=None,
+                    warm=None):
     """Exact k-NN on the index ``g``; with ``approx`` (a traced bool) True, the approximate mode.
 
     ``k_used`` (a traced int in ``[1, k]``, default ``k``): the number of neighbours wanted; the
@@ -633,6 +718,10 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
     ``n_q`` query rows are searched (the rest are returned missing), so queries of different
     lengths can share one padded array. ``one_group`` (static, default ``_ONE_GROUP``): the fallback
     passes in one looped body (see :func:`_chain_loop`; ICP asks for it: its compile time).
+    ``warm`` (traced ``(M,)`` int32, optional; used when ``k_used`` is 1): a previous nearest point of
+    each query (original index, -1: none), e.g. ICP's last correspondences; its distance bounds the
+    search, and the rows :func:`_warm_pass` answers skip the other passes (same answers; the others
+    run as before).
 
     Exact: each pass answers the queries whose k-th distance it certifies; the rest go to the
     next pass (fine 27-cell block, fine 125-cell block, coarse levels, brute force).
@@ -714,7 +803,17 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
             return d2, jnp.where(jnp.isfinite(d2), g.order[pos], -1), cert, ~full[:, 0]
 
         C1 = _fixed_slots(k)
-        d2, idx, cert, over = _batched(lambda q: fixed_pass(q, C1), (qry,), min(_B1, qry.shape[0]), n_q)
+        B1 = min(_B1, qry.shape[0])
+        if warm is None:
+            d2, idx, cert, over = _batched(lambda q: fixed_pass(q, C1), (qry,), B1, n_q)
+        else:
+            use = jnp.asarray(True) if k_used is None else (k_used == 1)
+            jw = jnp.where(use, jnp.asarray(warm, jnp.int32), -1)
+            d2, idx, cert = _batched(lambda q, j: _warm_pass(g, q, j, k, _WARM_SLOTS), (qry, jw), B1, n_q)
+            todo = ~cert if live is None else ~cert & live
+            # the rows the warm pass did not answer: the fixed first pass, as without it
+            d2, idx, cert, over = _redo(todo, B1, lambda sel: fixed_pass(qry[sel], C1),
+                                        (d2, idx, cert, jnp.zeros(cert.shape, bool)), skip=True)
         # the queries whose block holds more than C1 points: the same 27 cells scanned in full, the
         # first pass of the fallback chain below (few on an index sized for k; most when a k = 1 query
         # meets an index sized for k = 10: ICP now queries with the width of its normals' k instead;
@@ -729,7 +828,7 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
         over = None
     if _LOOP:
         d2, idx, cert = _chain_loop(g, qry, k, (d2, idx, cert), approx, gated, S, kth, live, over,
-                                    _ONE_GROUP if one_group is None else one_group, select)
+                                    _ONE_GROUP if one_group is None else one_group, select, skip_empty=warm is not None)
     else:
         # not answered: the 5 x 5 x 5 block of the same grid
         # (smaller batches in float64, whose loop passes measured ~10x slower than float32's in XLA:CPU)
@@ -768,7 +867,7 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
 
 
 def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S, kth=None, live=None, over=None, one_group=False,
-                select=None):
+                select=None, skip_empty=False):
     """The fallback chain of :func:`_query_grid_knn` after its first pass, as two looped bodies.
 
     The passes, in order: the fine 5 x 5 x 5 block; (approximate mode) the representatives'
@@ -828,7 +927,7 @@ def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S, kth=None, live=Non
             todo = ~done(outs[0], outs[2]) & (use_approx | ~rep[i])
             if over is not None:
                 todo = todo & (over | ~only_over[i])
-            return _redo(todo, B, one, outs)
+            return _redo(todo, B, one, outs, skip=skip_empty)
 
         return lax.fori_loop(0, len(passes), body, tuple(outs))
 
@@ -853,7 +952,7 @@ def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S, kth=None, live=Non
             coarse.append(g.coarse.coarse)
             coarse_passes.append((len(coarse) - 1, 1, False, False, False))
     coarse_passes.append((0, 1, False, True, False))
-    d2, idx, cert = run(coarse, coarse_passes, _B2, 8 * S, outs)
+    d2, idx, cert = run(coarse, coarse_passes, _B2, (_S2_ONE if one_group else 8) * S, outs)
     if qry.dtype != jnp.float32 and k > 1:  # ambiguous float64 rows of the whole-array scan
         refs = _brute_refs(g.ref, g.valid)
         d2, idx, cert = _redo(~done(d2, cert), 8, lambda sel: _brute_queries(refs, qry[sel], k, _exact=True)[:2]
