@@ -45,6 +45,8 @@ __all__ = [
     "rss_peak_bytes",
     "machine_info",
     "load_average",
+    "module_at",
+    "print_ab_rows",
 ]
 
 
@@ -273,3 +275,12 @@ def module_at(commit: str, relpath: str, name: str):
     finally:
         reg.register = real
     return mod
+
+
+def print_ab_rows(tim: dict, old: str, ref: str = "scipy", suffixes: tuple = ("", " B=4")) -> None:
+    """Print the old and current ("now") medians of an A/B timing beside the reference's, with their
+    ratio, one row per suffix (single, batched): the profile_* scripts' table."""
+    for k in (old, "now"):
+        for sfx in suffixes:
+            t, s = tim[k + sfx].median, tim[ref + sfx].median
+            print(f"  {k + sfx:16s} {t * 1e3:8.1f} ms   {ref} {s * 1e3:8.1f} ms   ratio {t / s:.2f}")

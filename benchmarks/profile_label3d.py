@@ -24,7 +24,7 @@ ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(ROOT))
 
-from _harness import load_average, module_at, time_round_robin  # noqa: E402
+from _harness import load_average, module_at, print_ab_rows, time_round_robin  # noqa: E402
 
 
 def _module_at(commit: str):
@@ -72,10 +72,7 @@ def main() -> None:
         tim = time_round_robin(comp, repeats=a.repeats if n < 256 else 3, warmup=1)
         print(f"label3d {n}^3 (26-connectivity, {int(ref[0].max())} components, {rounds} rounds); "
               f"load {tuple(round(v, 1) for v in load_average())}; " + "; ".join(info))
-        for k in (a.old, "now"):
-            for sfx in ("", " B=4"):
-                t, s = tim[k + sfx].median, tim["scipy" + sfx].median
-                print(f"  {k + sfx:16s} {t * 1e3:8.1f} ms   scipy {s * 1e3:8.1f} ms   ratio {t / s:.2f}")
+        print_ab_rows(tim, a.old)
 
 
 if __name__ == "__main__":
