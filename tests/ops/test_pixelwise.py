@@ -268,3 +268,22 @@ def test_nan_input_and_wrong_sort_rejected():
         normalize(Image(jnp.array([[0.1, jnp.nan]])))
     with pytest.raises(TypeError, match="invert.*must be Image"):
         invert(fsjax.Color(jnp.zeros((2, 2, 3))))
+
+
+# The eleventh fuzz run (issue 19): `Region[scene f32] -> distance_transform -> sub_images#1` and
+# `... -> distance_transform -> add_images#1` (the distance map of a Region is float64 with x64 on,
+# the other operand a float32 pool image) returned float32: the ops cast to the first image's dtype
+# and dropped the float64 operand's precision (CONTRACT "dtype not kept"). They promote both now.
+@pytest.mark.parametrize("name,sign", [("add_images", 1.0), ("sub_images", -1.0)])
+def test_two_image_ops_keep_the_promoted_dtype(name, sign):
+    op = getattr(fsjax.ops, name)
+    a32 = fsjax.Image(jnp.full((3, 4), 0.25, jnp.float32))
+    b64 = fsjax.Image(jnp.full((3, 4), 0.1 + 1e-12, jnp.float64))   # 1e-12 is lost in float32
+    for x, y in ((a32, b64), (b64, a32)):
+        out = op(x, y, offset=0.0, scale=1.0)
+        assert out.data.dtype == jnp.float64, (name, out.data.dtype)
+        want = np.asarray(x.data, np.float64) + sign * np.asarray(y.data, np.float64)
+        np.testing.assert_allclose(np.asarray(out.data), want, rtol=0, atol=1e-15)
+    # the null: the old cast to the first image's dtype loses the float64 operand's 1e-12
+    old = np.asarray(((a32.data + sign * b64.data) * 1.0).astype(a32.data.dtype), np.float64)
+    assert np.abs(old - (0.25 + sign * (0.1 + 1e-12))).max() > 1e-12

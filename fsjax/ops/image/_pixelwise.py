@@ -379,8 +379,8 @@ def add_images(img1: Image, img2: Image, /, *, offset: float = 0.0, scale: float
     _check_same_shape("add_images", img1, img2)
     check_range("add_images", "offset", offset)
     check_positive("add_images", "scale", scale)
-    x = img1.data
-    return Image(((x + img2.data) * scale + offset).astype(x.dtype))
+    dt = jnp.result_type(img1.data, img2.data)  # both inputs' precision, as JAX promotes
+    return Image(((img1.data + img2.data) * scale + offset).astype(dt))
 
 
 @register(family="point", takes=(Image, Image), gives=Image,
@@ -416,8 +416,8 @@ def sub_images(img1: Image, img2: Image, /, *, offset: float = 0.5, scale: float
     _check_same_shape("sub_images", img1, img2)
     check_range("sub_images", "offset", offset)
     check_positive("sub_images", "scale", scale)
-    x = img1.data
-    return Image(((x - img2.data) * scale + offset).astype(x.dtype))
+    dt = jnp.result_type(img1.data, img2.data)  # both inputs' precision, as JAX promotes
+    return Image(((img1.data - img2.data) * scale + offset).astype(dt))
 
 
 # ---------------------------------------------------------------------------
