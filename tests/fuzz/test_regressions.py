@@ -549,9 +549,10 @@ def test_euclidean_cluster_traced_overflow_where_eager_grew(monkeypatch):
     assert not bool(eager.truncated) and bool(traced.truncated)
     assert _run._differ(traced, eager, "float64", []) is None
     assert _run._differ(eager, traced, "float64", []) is not None   # eager flagged, traced not: a mismatch
-    monkeypatch.setattr(_run, "_traced_overflow_eager_grew", lambda x, y: False)   # the null: without the rule
-    o = fz.Runner(specs, grad=False, vmap=False).run(c)
-    assert (o.status, o.cls) == ("failed", "MISMATCH"), o
+    # the null, without the rule: the same pair is the run's MISMATCH (compared directly: a second
+    # replay of the chain cost ~15 s in the suite)
+    monkeypatch.setattr(_run, "_traced_overflow_eager_grew", lambda x, y: False)
+    assert "truncated" in _run._differ(traced, eager, "float64", [])
 
 
 # lk_translation3d was never executed in stop 37's full run: the pool's second volume had spacing
