@@ -187,7 +187,7 @@ def test_shape_locate3d_fails_closed_and_checks_arguments():
 # --- generalised_hough3d: voting, instances, capacity -------------------------------------------
 
 
-def test_hough_bins_and_votes_against_direct_counts():
+def test_hough_bins_and_votes_against_direct_counts(monkeypatch):
     """Ground truth of the voting: the accumulator equals, at every placement, the number of
     (R-table entry, scene edge voxel) pairs of one bin with s - u = o, counted by a loop. And the
     scene's bins (a lookup table over polar angle and azimuth) against the exact nearest bin axis
@@ -237,6 +237,22 @@ def test_hough_bins_and_votes_against_direct_counts():
         np.add.at(want, tuple(o.T), 1.0)
     assert int(total) == n_votes and n_votes > 1000 and int(n_model) == 64
     np.testing.assert_array_equal(A, want)
+    # the votes are cast in chunks (G.VOTE_CHUNK): chunks of 97 put boundaries inside the entries' runs
+    # (an off-by-one at a boundary drops or doubles votes); the same counts. A capacity below the
+    # total casts exactly the first max_votes votes (the op then reports the overflow).
+    monkeypatch.setattr(G, "VOTE_CHUNK", 97)
+
+    def chunked(x, t, cap):
+        eb, eu, ev, _ = G._model_table(t, 1.0, (1.0, 1.0, 1.0), 0.3, cos_tol, dirs, 64)
+        return G._accumulate(x, eb, eu, ev, 1.0, (1.0, 1.0, 1.0), 0.2, dirs, t.shape, cap)
+
+    A97, t97 = jax.jit(chunked, static_argnums=2)(x, t, 2 ** 16)
+    assert int(t97) == n_votes and n_votes > 10 * 97
+    np.testing.assert_array_equal(np.asarray(A97), want)
+    cap = n_votes - 250
+    A_cut, t_cut = jax.jit(chunked, static_argnums=2)(x, t, cap)
+    assert int(t_cut) == n_votes and 0 < float(np.asarray(A_cut).sum()) <= float(want.sum())
+    assert float(want.sum() - np.asarray(A_cut).sum()) <= 250
 
 
 def test_hough_finds_two_instances_and_beats_its_nulls():
