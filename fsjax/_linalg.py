@@ -60,6 +60,11 @@ __all__ = ["eigh_small", "solve_spd_eig", "solve_small", "lstsq_small", "SmallQR
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 2}
 
 
+def _has_tracer(tree) -> bool:
+    """True when a leaf of ``tree`` is a tracer (the call is inside a user's jit, vmap or grad)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+
+
 def jit_fast_compile(fun=None, /, **jit_kwargs):
     """``jax.jit(fun, **jit_kwargs)`` compiled with :data:`FAST_COMPILE` when called at top level.
 
@@ -76,8 +81,7 @@ def jit_fast_compile(fun=None, /, **jit_kwargs):
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs)))
-        return (plain if traced else fast)(*args, **kwargs)
+        return (plain if _has_tracer((args, kwargs)) else fast)(*args, **kwargs)
 
     call.fast, call.plain = fast, plain   # the two jitted functions (introspection, tests)
     return call
@@ -99,8 +103,7 @@ def filter_jit_fast_compile(fun):
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        leaves = jax.tree_util.tree_leaves((args, kwargs))
-        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        if _has_tracer((args, kwargs)):
             return plain(*args, **kwargs)
         dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
         static_leaves, static_def = jax.tree_util.tree_flatten(static)
