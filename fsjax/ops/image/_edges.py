@@ -44,7 +44,13 @@ from jaxtyping import Array, Float
 from ..._checks import check_choice, check_positive, check_range
 from ...registry import LinKnob, LogKnob, register
 from ...types import Image, is_concrete
-from .._common import check_kernel_extent, check_mode, correlate1d, support_exceeded
+from .._common import (
+    check_kernel_extent,
+    check_mode,
+    correlate1d,
+    correlate1d_antisymmetric,
+    support_exceeded,
+)
 from ._filters import _gaussian_radius, gaussian_weights
 
 __all__ = [
@@ -116,7 +122,14 @@ def _gauss_filter(x, sigma, orders, truncate, max_sigma, mode):
     """Separable Gaussian (derivative) filter; ``orders = (row_order, col_order)``."""
     wr = _gauss_taps(sigma, orders[0], truncate, max_sigma, x.dtype)
     wc = _gauss_taps(sigma, orders[1], truncate, max_sigma, x.dtype)
-    out = correlate1d(correlate1d(x, wr, axis=-2, mode=mode), wc, axis=-1, mode=mode)
+    # first-order taps are exactly antisymmetric (k phi_k with phi symmetric): summed as
+    # mirrored differences, a constant image has exactly zero derivative in every program
+    def along(v, w, order, axis):
+        if order == 1:
+            return correlate1d_antisymmetric(v, w, axis=axis, mode=mode)
+        return correlate1d(v, w, axis=axis, mode=mode)
+
+    out = along(along(x, wr, orders[0], -2), wc, orders[1], -1)
     return _poison_wide(out, sigma, truncate, wr.shape[0] // 2)
 
 
