@@ -354,7 +354,7 @@ def load_journal(path: str | os.PathLike, *, seed: int = -1, max_length: int = 0
             continue
         d = json.loads(line)
         od = dict(d["outcome"])
-        for k in ("refused", "refused_traced"):
+        for k in ("refused", "refused_traced", "conditioned"):
             if od.get(k) is not None:
                 od[k] = tuple(od[k])
         c = Chain.from_json(d["chain"])
@@ -546,6 +546,18 @@ def write_report(run: FuzzRun, out_dir: str | os.PathLike, *, command: str = "")
     for k in CLASSES:
         ns = sum(1 for s, it in sigs.items() if it[0][1].cls == k)
         L.append(f"| {k} | {cc[k]} | {ns} |")
+    L.append("")
+    cond = collections.Counter(o.conditioned[0] for _, o in run.results if getattr(o, "conditioned", None))
+    L.append("## Ill-conditioned stages (not failures)\n")
+    L.append("A stage whose traced output differed from the eager one while its compiled program, given "
+             "the eager input, agreed: the upstream stages' round-off (each within the tolerance) "
+             "amplified by the op's conditioning; the chain's later stages are not compared "
+             "(`Runner._same_input_agrees`).\n")
+    if not cond:
+        L.append("None.\n")
+    for op_, k in cond.most_common():
+        first = next(o for _, o in run.results if getattr(o, "conditioned", None) and o.conditioned[0] == op_)
+        L.append(f"* `{op_}`: {k} chain(s); first: `{first.conditioned[2][:200]}`")
     L.append("")
     L.append("## Signatures and minimised reproducers\n")
     if not sigs:

@@ -19,7 +19,8 @@ from fsjax import Contour, Image, Region
 from fsjax.registry import register
 
 PLANTED = ("planted_wrong_sort", "planted_odd_index", "planted_recompile", "planted_overflow",
-           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs", "planted_match_nan", "planted_instances")
+           "planted_nan_grad", "planted_traced_nan", "planted_jit_differs", "planted_match_nan", "planted_instances",
+           "planted_jitter", "planted_amplify")
 
 
 def _plant():
@@ -81,6 +82,18 @@ def _plant():
         """Planted bug: another answer under a trace than eagerly."""
         k = 1.0 if fsjax.types.is_concrete(img.data) else 1.5
         return Image(img.data * k)
+
+
+    @register(family="planted", takes=Image, gives=Image)
+    def planted_jitter(img: Image) -> Image:
+        """Not a bug: a traced program whose round-off differs from the eager one (1e-9 relative,
+        inside the float64 tolerance)."""
+        return Image(img.data if fsjax.types.is_concrete(img.data) else img.data * (1.0 + 1e-9))
+
+    @register(family="planted", takes=Image, gives=Image)
+    def planted_amplify(img: Image) -> Image:
+        """Not a bug: an ill-conditioned op (``sin(1e9 x)``), the same program both ways."""
+        return Image(jnp.sin(img.data * 1e9))
 
 
 @pytest.fixture(scope="module")
@@ -577,3 +590,17 @@ def test_triangulate_column_runs_on_the_pool_at_every_raster_size():
     cam = standard_input(StructuredLightRig, 0).camera
     assert (cam.width, cam.height) == (32, 24)
     assert [float(v) for v in cam.K[0]] == [40.0, 0.0, 15.5] and float(cam.K[1, 2]) == 11.5
+
+
+def test_conditioning_is_not_a_mismatch_but_a_differing_op_still_is(planted, monkeypatch):
+    """Upstream round-off amplified by an ill-conditioned op is recorded as conditioned (the op's
+    program agrees on the eager input); an op that computes otherwise under the trace after the
+    same upstream round-off is still a MISMATCH; the null (no same-input judgement) fails both."""
+    runner, _ = planted
+    o = runner.run(_chain(["planted_jitter", "planted_amplify"]))
+    assert o.status == "ok" and o.conditioned is not None and o.conditioned[:2] == ("planted_amplify", 1), o
+    o = runner.run(_chain(["planted_jitter", "planted_jit_differs"]))
+    assert (o.status, o.cls, o.op, o.stage) == ("failed", "MISMATCH", "planted_jit_differs", 1), o
+    monkeypatch.setattr(fz.Runner, "_same_input_agrees", lambda self, *a: False)
+    o = runner.run(_chain(["planted_jitter", "planted_amplify"], size=(8, 9)))
+    assert (o.status, o.cls, o.op, o.stage) == ("failed", "MISMATCH", "planted_amplify", 1), o
