@@ -19,7 +19,10 @@ path). A value that is NaN under the trace
 where the eager call is finite is not a MISMATCH: a traced way may fail closed where an eager
 call sizes its buffers from the data (``render_depth``); the traced output is then checked
 as NONFINITE (explained only by a flag or a sort's documented NaN) and later stages, which
-saw other data, are not compared.
+saw other data, are not compared. A stage after the first that differs is judged on the same
+input: its compiled program is called on the stage's eager input, and if it agrees there the
+difference is upstream round-off amplified by the op's conditioning (``Outcome.conditioned``,
+not a failure; later stages not compared); otherwise it is a MISMATCH.
 """
 
 from __future__ import annotations
