@@ -74,9 +74,11 @@ def test_degenerate_and_invalid():
     cv = fsjax.ops.curvature(fsjax.Points(jnp.asarray(xyz), valid=jnp.asarray(valid)), k=12)
     v = np.asarray(cv.values)
     assert np.all(np.isnan(v[:10])) and np.all(np.isfinite(v[10:]))
+    assert np.array_equal(np.asarray(cv.valid), valid)   # the cloud's mask where every fit is posed
     # collinear points: no surface, NaN rather than a plausible curvature
     line = np.c_[np.linspace(0, 1, 30), np.zeros(30), np.zeros(30)]
-    assert bool(jnp.all(jnp.isnan(fsjax.ops.curvature(fsjax.Points(jnp.asarray(line)), k=8).values)))
+    cl = fsjax.ops.curvature(fsjax.Points(jnp.asarray(line)), k=8)
+    assert bool(jnp.all(jnp.isnan(cl.values))) and not bool(jnp.any(cl.valid))   # flagged, not only NaN
     with pytest.raises(ValueError, match="curvature.*'k'"):
         fsjax.ops.curvature(fsjax.Points(jnp.asarray(xyz)), k=3)
     with pytest.raises(KeyError, match="no column"):

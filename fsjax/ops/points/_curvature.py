@@ -108,7 +108,10 @@ def curvature(pts: Points, /, *, k: int = 24) -> PointValues:
 
     Returns:
       :class:`PointValues` with columns ``k1, k2, mean, gaussian, shape_index,
-      curvedness`` (curvatures in 1/length, ``k1 >= k2``).
+      curvedness`` (curvatures in 1/length, ``k1 >= k2``). Its ``valid`` is the
+      cloud's mask and a well-posed fit: a point with fewer than 6 valid
+      neighbours, or whose patch is degenerate (collinear, a repeated point), is
+      invalid and holds NaN, never a plausible curvature.
 
     Note:
       The osculating-jet estimator of degree 2 (Cazals & Pouget 2005) with
@@ -145,4 +148,5 @@ def curvature(pts: Points, /, *, k: int = 24) -> PointValues:
     cv = jnp.sqrt(0.5 * (k1 * k1 + k2 * k2))
     vals = jnp.stack([k1, k2, H, K, si, cv], axis=-1)
     vals = jnp.where(ok[:, None], vals, jnp.nan)
-    return PointValues(vals, CURVATURE_NAMES, valid=pts.valid)
+    # a row whose fit is ill-posed is not measured: invalid, and NaN as an invalid row holds
+    return PointValues(vals, CURVATURE_NAMES, valid=valid & ok)
