@@ -27,6 +27,7 @@ This module also registers the standard-input pool builders of the ``HSV`` and
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -404,6 +405,65 @@ def lab_to_rgb(img: Lab, /) -> Color:
 # ---------------------------------------------------------------------------
 
 
+def _stretch_gains(lam, aux):
+    """Per-axis gains of :func:`decorrelation_stretch` from the covariance's eigenvalues ``lam``
+    and ``aux = (tol, flat, max_gain, trace C)`` (see its docstring for the formula)."""
+    tol, flat, max_gain, tr = aux[0], aux[1] > 0.5, aux[2], aux[3]
+    eps = jnp.finfo(lam.dtype).eps
+    lam = jnp.maximum(lam, 0.0)
+    floor = jnp.maximum(lam, jnp.max(lam) / max_gain**2)
+    # A null axis (rank-deficient covariance) holds only rounding: eigh's absolute error on its
+    # eigenvalue, ~eps * lam_max, and the data's own rounding, below tol / 4096. The max_gain
+    # floor alone stretched it by max_gain at every call (float32: three stretches of a rank-2
+    # image drifted 4.5e-3 from float64 and eager from jit, the chain fuzzer's MISMATCH); a hard
+    # cut-off made the op discontinuous there. Each axis's gain is multiplied by the smooth
+    # factor w = u^4 / sqrt(u^8 + 1), u = lam / r (1 - u^-8 / 2 for u >> 1, u^4 -> 0 for
+    # u << 1), r = eps^(2/3) tr(C) + tol: eps^(-1/3) (float32 203, float64 1.6e5) times eigh's
+    # rounding, so a rounding eigenvalue gets w < 1e-9. The fourth power keeps a finite-difference
+    # step of 1e-7 of the data (u ~ 1e-3 on a null axis in float64) well inside w ~ 0 (with u^2
+    # and r = 64 eps tr(C), the contract's FD gradient failed); u is capped at 1e3 (w = 1 to
+    # 5e-25) so u^8 stays finite in float32.
+    r = jnp.where(flat, 1.0, eps ** (2.0 / 3.0) * tr + tol)   # > 0 (all-zero image: tol = 0)
+    u4 = jnp.minimum(lam / r, 1e3) ** 4
+    w = u4 / jnp.sqrt(u4**2 + 1.0)
+    ok = (floor > 0) & ~flat
+    return jnp.where(ok, w / jnp.sqrt(jnp.where(ok, floor, jnp.ones_like(floor))), jnp.zeros_like(floor))
+
+
+@jax.custom_jvp
+def _whitening(c, aux):
+    """``V diag(g(lam)) V^T`` for the symmetric 3 x 3 ``c = V diag(lam) V^T``, ``g`` =
+    :func:`_stretch_gains`, with a derivative that stays finite where eigenvalues coincide."""
+    lam, vec = jnp.linalg.eigh(c)
+    return (vec * _stretch_gains(lam, aux)[None, :]) @ vec.T
+
+
+@_whitening.defjvp
+def _whitening_jvp(primals, tangents):
+    # A spectral matrix function M = V diag(g(lam)) V^T has the derivative (Daleckii-Krein; for g
+    # depending on every eigenvalue, Lewis 1996 / Sendov 2007) V [diag(J dlam) + D o S] V^T with
+    # S = V^T dC V, dlam = diag(S), J = dg/dlam and D_ij = (g_i - g_j) / (lam_i - lam_j), whose
+    # limit at lam_i = lam_j is J_ii - J_ij. eigh's own derivative has 1 / (lam_i - lam_j) in the
+    # eigenvectors' part: 0 * inf = NaN at a repeated eigenvalue (two null colour axes of a grey
+    # image: the chain fuzzer's GRADNAN), although M does not depend on the basis chosen there.
+    c, aux = primals
+    dc, daux = tangents
+    lam, vec = jnp.linalg.eigh(c)
+    g, dg_aux = jax.jvp(lambda a: _stretch_gains(lam, a), (aux,), (daux,))
+    jac = jax.jacfwd(_stretch_gains)(lam, aux)
+    sm = vec.T @ dc @ vec
+    sm = 0.5 * (sm + sm.T)
+    dg = jac @ jnp.diagonal(sm) + dg_aux
+    dl = lam[:, None] - lam[None, :]
+    eps = jnp.finfo(lam.dtype).eps
+    close = jnp.abs(dl) <= jnp.sqrt(eps) * jnp.maximum(jnp.max(jnp.abs(lam)), jnp.finfo(lam.dtype).tiny)
+    jd = jnp.diagonal(jac)
+    lim = 0.5 * ((jd[:, None] - jac) + (jd[None, :] - jac.T))
+    dd = jnp.where(close, lim, (g[:, None] - g[None, :]) / jnp.where(close, 1.0, dl))
+    inner = jnp.where(jnp.eye(3, dtype=bool), jnp.diag(dg), dd * sm)
+    return (vec * g[None, :]) @ vec.T, vec @ inner @ vec.T
+
+
 @register(family="color", takes=Color, gives=Color,
           knobs={"target_sigma": LinKnob(0.05, 0.3), "max_gain": LogKnob(3.0, 300.0)},
           differentiable=True,
@@ -446,10 +506,12 @@ def decorrelation_stretch(img: Color, /, *, target_sigma: float | None = None,
     rounding level was not). A constant image (variance below
     ``(64 eps max|x|)^2``, the mean's rounding) is returned as its mean, with or
     without ``target_sigma``.
-    Gradients are finite when the eigenvalues are distinct and on a constant image
-    (all three zero: the output is the mean, found by the chain fuzzer); where two
-    coincide otherwise (e.g. a grey image with noise) they are NaN, the usual
-    eigenvector-derivative singularity.
+    Gradients are finite everywhere, also where two eigenvalues coincide (a grey
+    image: two null colour axes; found by the chain fuzzer as a NaN gradient): the
+    whitening matrix is a spectral function of the covariance, differentiated by
+    divided differences of the gains with their limit at a repeated eigenvalue
+    (Daleckii-Krein) instead of through the eigenvectors, whose derivative is
+    singular there.
 
     Args:
       img: linear RGB ``(H, W, 3)``.
@@ -500,26 +562,9 @@ def decorrelation_stretch(img: Color, /, *, target_sigma: float | None = None,
     eps = jnp.finfo(x.dtype).eps
     tol = (64 * eps * jnp.max(jnp.abs(flat))) ** 2
     flat_cov = jnp.trace(cov) <= 3 * tol
-    lam, vec = jnp.linalg.eigh(jnp.where(flat_cov, jnp.diag(jnp.arange(1.0, 4.0, dtype=cov.dtype)), cov))
-    lam = jnp.maximum(lam, 0.0)
-    floor = jnp.maximum(lam, jnp.max(lam) / max_gain**2)
-    # A null axis (rank-deficient covariance) holds only rounding: eigh's absolute error on its
-    # eigenvalue, ~eps * lam_max, and the data's own rounding, below tol / 4096. The max_gain
-    # floor alone stretched it by max_gain at every call (float32: three stretches of a rank-2
-    # image drifted 4.5e-3 from float64 and eager from jit, the chain fuzzer's MISMATCH); a hard
-    # cut-off made the op discontinuous there. Each axis's gain is multiplied by the smooth
-    # factor w = u^4 / sqrt(u^8 + 1), u = lam / r (1 - u^-8 / 2 for u >> 1, u^4 -> 0 for
-    # u << 1), r = eps^(2/3) tr(C) + tol: eps^(-1/3) (float32 203, float64 1.6e5) times eigh's
-    # rounding, so a rounding eigenvalue gets w < 1e-9. The fourth power keeps a finite-difference
-    # step of 1e-7 of the data (u ~ 1e-3 on a null axis in float64) well inside w ~ 0 (with u^2
-    # and r = 64 eps tr(C), the contract's FD gradient failed); u is capped at 1e3 (w = 1 to
-    # 5e-25) so u^8 stays finite in float32.
-    r = jnp.where(flat_cov, 1.0, eps ** (2.0 / 3.0) * jnp.trace(cov) + tol)   # > 0 (all-zero image: tol = 0)
-    u4 = jnp.minimum(lam / r, 1e3) ** 4
-    w = u4 / jnp.sqrt(u4**2 + 1.0)
-    ok = (floor > 0) & ~flat_cov
-    gain = jnp.where(ok, w / jnp.sqrt(jnp.where(ok, floor, jnp.ones_like(floor))), jnp.zeros_like(floor))
-    whiten = (vec * gain[None, :]) @ vec.T
+    c = jnp.where(flat_cov, jnp.diag(jnp.arange(1.0, 4.0, dtype=cov.dtype)), cov)
+    aux = jnp.stack([tol, flat_cov.astype(cov.dtype), jnp.asarray(max_gain, cov.dtype), jnp.trace(cov)])
+    whiten = _whitening(c, aux)
     if target_sigma is None:
         var = jnp.diagonal(cov)
         pos = var > 0
