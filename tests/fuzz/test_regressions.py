@@ -637,3 +637,77 @@ def test_ill_conditioned_phase_is_judged_on_the_eager_input(monkeypatch):
     monkeypatch.setattr(fz.Runner, "_same_input_agrees", lambda self, *a: False)
     o = fz.Runner(specs, grad=False).run(c)
     assert (o.status, o.cls, o.op, o.stage) == ("failed", "MISMATCH", "fft_phase", 2), o
+
+
+# curvature after remove_ground on the float32 point scene: 5 points survive, fewer than the 6 a
+# quadric fit needs, and curvature returned NaN rows that its `valid` (the cloud's mask) called
+# valid (NONFINITE curvature in a profile run of stop 34, never fixed until stop 38). Fixed in the
+# op: a row whose fit is ill-posed is invalid (valid = cloud mask & a posed fit) and holds NaN.
+CURV_FEW = {"input": {"sort": "Points", "kind": "scene", "size": [16, 16], "dtype": "float32", "variant": 0},
+            "stages": [{"op": "remove_ground", "a": 0.5, "b": 0.5, "params": {}, "slot": 0},
+                       {"op": "curvature", "a": None, "b": None, "params": {}, "slot": 0}]}
+
+
+def test_curvature_flags_rows_it_cannot_fit():
+    import numpy as np
+
+    c = fz.Chain.from_json(CURV_FEW)
+    runner = fz.Runner([fsjax.get_op("remove_ground"), fsjax.get_op("curvature")], grad=False)
+    o = runner.run(c)
+    assert o.status == "ok", o
+    pts = fz.build_input(fsjax.Points, "scene", (16, 16), "float32")
+    kept = fsjax.get_op("remove_ground").fn(pts, **fsjax.get_op("remove_ground").knob_params(0.5, 0.5, strict=True))
+    cv = fsjax.ops.curvature(kept)
+    v, ok = np.asarray(cv.values), np.asarray(cv.valid)
+    assert 0 < int(np.asarray(kept.valid).sum()) < 6 and not ok.any() and np.isnan(v).all()
+    # the null: the same values under the cloud's own mask are a NONFINITE
+    old = fsjax.PointValues(cv.values, cv.names, valid=kept.valid)
+    with pytest.raises(fz._run._Fail, match="NaN"):
+        runner._check_finite(1, "curvature", old, "eager")
+
+
+# decorrelation_stretch of a grey image carried to colour (grey_to_rgb -> rgb_to_lab -> lab_to_rgb):
+# the covariance has two null eigenvalues, equal, and eigh's eigenvector derivative there is
+# 0 * inf = NaN (GRADNAN in a profile run of stop 34, "not investigated" until stop 38). Fixed in
+# the op: the whitening matrix is differentiated as a spectral function (divided differences of
+# the gains, their limit at a repeated eigenvalue), not through the eigenvectors.
+DECORR_GREY = {"input": {"sort": "Image", "kind": "large", "size": [16, 16], "dtype": "float32", "variant": 0},
+               "stages": [{"op": "grey_to_rgb", "a": None, "b": None, "params": {}, "slot": 0},
+                          {"op": "rgb_to_lab", "a": None, "b": None, "params": {}, "slot": 0},
+                          {"op": "lab_to_rgb", "a": None, "b": None, "params": {}, "slot": 0},
+                          {"op": "decorrelation_stretch", "a": None, "b": 0.9, "params": {}, "slot": 0}]}
+
+
+def test_decorrelation_stretch_gradient_at_repeated_eigenvalues(monkeypatch):
+    import jax
+    import numpy as np
+
+    c = fz.Chain.from_json(DECORR_GREY)
+    o = fz.Runner([fsjax.get_op(s.op) for s in c.stages]).run(c)
+    assert o.status == "ok", o
+    rng = np.random.default_rng(5)
+    grey = jnp.asarray(np.repeat(rng.uniform(0.2, 0.8, (12, 12, 1)), 3, axis=2))   # rank 1: two null axes
+    z, wgt = (jnp.asarray(rng.standard_normal(grey.shape)) for _ in range(2))
+    loss = jax.jit(lambda t: jnp.sum(fsjax.ops.decorrelation_stretch(fsjax.Color(grey + t * z)).data * wgt))
+    ga = float(jax.grad(loss)(0.0))
+    fd = float((loss(1e-8) - loss(-1e-8)) / 2e-8)
+    assert np.isfinite(ga) and abs(ga) > 0.1 and abs(ga - fd) <= 1e-5 * abs(fd), (ga, fd)
+    # an isotropic covariance (three equal eigenvalues): finite and equal to the finite difference
+    a = rng.standard_normal((144, 3))
+    q = np.linalg.qr(a - a.mean(0))[0]
+    iso = jnp.asarray((q * 12.0 * 0.1 + 0.5).reshape(12, 12, 3))
+    loss2 = jax.jit(lambda t: jnp.sum(fsjax.ops.decorrelation_stretch(fsjax.Color(iso + t * z), target_sigma=0.2).data * wgt))
+    g2, fd2 = float(jax.grad(loss2)(0.0)), float((loss2(1e-6) - loss2(-1e-6)) / 2e-6)
+    assert abs(g2) > 0.1 and abs(g2 - fd2) <= 1e-6 * abs(fd2), (g2, fd2)
+
+    # the null: the same whitening differentiated through eigh's eigenvectors (the op before the
+    # fix): the chain's gradient is NaN again
+    from fsjax.ops.image import _color
+
+    def through_eigh(cm, aux):
+        lam, vec = jnp.linalg.eigh(cm)
+        return (vec * _color._stretch_gains(lam, aux)[None, :]) @ vec.T
+
+    monkeypatch.setattr(_color, "_whitening", through_eigh)
+    o = fz.Runner([fsjax.get_op(s.op) for s in c.stages]).run(c)
+    assert (o.status, o.cls, o.op) == ("failed", "GRADNAN", "decorrelation_stretch"), o
