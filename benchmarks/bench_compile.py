@@ -12,7 +12,8 @@ Method:
   so a jitted helper shared by several ops is traced by the first that uses it (XLA compiles
   every program whole, so the compile column is not shared).
 * **6-stage pipeline**: ``fsjax.pipeline([...])`` on a 256 x 256 image, jitted with its knobs
-  traced, timed the same way.
+  traced, timed the same way, with the compiler options its top-level call uses (``FAST_COMPILE``,
+  since stop 38).
 * **Fit / render functions** (modules ``fsjax.fit``, ``fsjax.render``): each public function
   whose docstring has an example runs it twice in a fresh namespace. The first run's
   trace / lower / compile seconds are summed from JAX's own monitoring events
@@ -111,13 +112,14 @@ def _steady(f, n=5):
     return float(np.median(ts))
 
 
-def _aot(fn, args, *, name, kind, static_kw=None):
-    """trace / lower / compile of ``jax.jit(fn)`` apart (wall and process CPU seconds), then steady state."""
+def _aot(fn, args, *, name, kind, static_kw=None, compiler_options=None):
+    """trace / lower / compile of ``jax.jit(fn)`` apart (wall and process CPU seconds), then steady state.
+    ``compiler_options``: those the library's own top-level call compiles with (the pipeline's)."""
     kw = static_kw or {}
-    jf = jax.jit(lambda *a: fn(*a, **kw))
+    jf = jax.jit(lambda *a: fn(*a, **kw), compiler_options=compiler_options)
     c0, t0 = time.process_time(), time.perf_counter()
     traced = jf.trace(*args)
-    c1, t1 = time.process_time(), time.perf_counter()
+    t1 = time.perf_counter()
     lowered = traced.lower()
     c2, t2 = time.process_time(), time.perf_counter()
     compiled = lowered.compile()
@@ -155,15 +157,17 @@ def bench_pipeline():
     p = fsjax.pipeline(PIPELINE)
     x = standard_input(fsjax.Image, 0, size=(256, 256))
     knobs = jnp.full((len(PIPELINE), 2), 0.5)
+    from fsjax._linalg import FAST_COMPILE
+
+    # what `p(x, knobs)` compiles at top level: its program with FAST_COMPILE (fsjax.pipeline)
     r = _aot(lambda img, k: p._run(img, k), (x, knobs), name="pipeline: " + " > ".join(PIPELINE),
-             kind="pipeline")
+             kind="pipeline", compiler_options=FAST_COMPILE)
     _log(f"[pipeline] {r['total']:.2f} s")
     return [r]
 
 
 def _examples(modules):
     """(qualified name, doctest) of every public function of ``modules`` with a docstring example."""
-    finder = doctest.DocTestFinder(recurse=False)
     seen, out = set(), []
     for mod in modules:
         for n in sorted(getattr(mod, "__all__", dir(mod))):

@@ -34,7 +34,7 @@ ALLOWED: dict[str, set[str]] = {
     "data": {"types", "_checks"},
     "render": {"types", "_checks", "_linalg"},
     "ops": {"types", "_checks", "_linalg", "registry", "render"},
-    "pipeline": {"types", "_checks", "registry"},
+    "pipeline": {"types", "_checks", "_linalg", "registry"},
     "io": {"types", "_checks", "ops", "render"},
     "fit": {"types", "_checks", "_linalg", "registry", "render", "ops", "data"},
     "synth": {"types", "_checks", "_linalg", "registry", "render", "ops", "fit", "data", "io"},

@@ -136,3 +136,22 @@ def test_trace_reports_each_stage_as_it_finishes():
     outs = p.trace(x, on_stage=lambda i, st, y: seen.append((i, st.spec.name, y)))
     assert [(i, n) for i, n, _ in seen] == [(0, "gaussian"), (1, "sobel_amp"), (2, "otsu")]
     assert all(y is o for (_, _, y), o in zip(seen, outs))
+
+
+def test_top_level_call_uses_the_fast_compile_program_with_the_same_result(img):
+    """A pipeline called at top level runs its FAST_COMPILE program (fsjax._linalg.jit_fast_compile);
+    the plain program (what a user's jit or vmap traces) gives the same numbers."""
+    from fsjax._linalg import FAST_COMPILE
+
+    p = fsjax.pipeline(["gaussian", "sobel_amp", "otsu", "count_obj"])
+    k = jnp.full((4, 2), 0.4)
+    before = p._compiled.fast._cache_size()
+    y = p(img, k)
+    assert p._compiled.fast._cache_size() == before + 1   # the fast program was compiled and used
+    assert FAST_COMPILE["xla_cpu_use_fusion_emitters"] is False
+    yp = p._compiled.plain(img, k)
+    (a,), (b,) = jax.tree_util.tree_leaves(y), jax.tree_util.tree_leaves(yp)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
+    assert float(np.asarray(a)) > 0
+    yv = jax.vmap(lambda kk: p(img, kk))(jnp.stack([k, k]))   # under vmap: the plain program, traced
+    np.testing.assert_allclose(np.asarray(jax.tree_util.tree_leaves(yv)[0])[0], np.asarray(a), rtol=1e-12)
