@@ -79,10 +79,19 @@ source's index is built beside the target's (one vmapped build of both, padded t
 and a traced index picks the structure searched (``tests/fit/test_icp.py`` counts one search and
 one build while tracing). The normals / covariances and the registration modules search with the one
 public k-NN, :func:`fsjax.ops.knn` (any dimension, grid or brute force, a reusable index).
+
+Batching: under ``jax.vmap`` a grid-path call (``N M > 2**22``) runs the problems one after the other
+(``lax.map``, by a ``custom_vmap`` rule), so each stops at its own iteration count, keeps its branches
+(batched lanes would turn every ``lax.cond`` into a select computing both sides) and returns exactly a
+single ``jit`` call's answer (nested ``vmap`` s: the same iterations, the pose within float32 rounding,
+7.5e-8 on 300 bunny points, as XLA compiles the nested maps apart): 64 problems of 5,000 bunny points took 12.98 s as lanes and 2.80 s one after the
+other in one process (``docs/benchmarks_icp.md``). Small problems (the brute-force path, e.g.
+:func:`icp_multistart` on a few hundred points) stay batched lanes.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -91,7 +100,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._checks import check_choice, check_range, check_static_int, is_concrete
-from .._linalg import jit_fast_compile
+from .._linalg import _has_tracer, jit_fast_compile
 from ..ops import knn
 from ..ops.points._cloud import smallest_eigvec3
 from ..ops.points._search import (
@@ -602,7 +611,8 @@ def icp(
     """Register ``source`` to ``target`` by ICP (point-to-point, point-to-plane or GICP; trimmed).
 
     See the module docstring for the algorithm. Compiles under ``jax.jit`` (``method`` and the
-    integer arguments are static) and ``vmap``s over initial poses (:func:`icp_multistart`).
+    integer arguments are static) and ``vmap``s over initial poses (:func:`icp_multistart`) and
+    clouds; on the grid path a ``vmap`` runs the problems one after the other (module docstring).
 
     Args:
         source: source cloud (``Points`` or ``(N, 3)``).
@@ -662,13 +672,44 @@ def icp(
     t0 = jnp.zeros(3, dtype) if init_t is None else jnp.asarray(init_t, dtype)
     has_normals = tn is not None and method == "point_to_plane"
     tnormals = jnp.asarray(tn, dtype) if has_normals else jnp.zeros((1, 3), dtype)
-    return _icp_core(src, sv, tgt, tv, tnormals, r0, t0, jnp.asarray(max_correspondence_distance, dtype),
-                     jnp.asarray(overlap, dtype),
-                     None if inlier_distance is None else jnp.asarray(inlier_distance, dtype),
-                     jnp.asarray(min_inlier_fraction, dtype), jnp.asarray(rot_tol, dtype),
-                     jnp.asarray(trans_tol, dtype), method=method, max_iterations=int(max_iterations),
-                     inner_steps=int(inner_steps), normal_k=int(normal_k), cov_k=int(cov_k),
-                     has_normals=has_normals, verbose=bool(verbose))
+    args = (src, sv, tgt, tv, tnormals, r0, t0, jnp.asarray(max_correspondence_distance, dtype),
+            jnp.asarray(overlap, dtype), None if inlier_distance is None else jnp.asarray(inlier_distance, dtype),
+            jnp.asarray(min_inlier_fraction, dtype), jnp.asarray(rot_tol, dtype), jnp.asarray(trans_tol, dtype))
+    statics = dict(method=method, max_iterations=int(max_iterations), inner_steps=int(inner_steps),
+                   normal_k=int(normal_k), cov_k=int(cov_k), has_normals=has_normals, verbose=bool(verbose))
+    if not _SEQUENTIAL_VMAP or src.shape[0] * tgt.shape[0] <= _BRUTE_LIMIT or not _has_tracer(args):
+        return _icp_core(*args, **statics)  # (an eager call: the FAST_COMPILE program, no vmap to meet)
+    return _one_after_the_other(functools.partial(_icp_core, **statics))(*args)
+
+
+_SEQUENTIAL_VMAP = True  # vmap of a grid-path icp runs the problems by lax.map (a probe knob)
+
+
+def _one_after_the_other(core):
+    """``core`` whose ``vmap`` runs the problems one after the other (``lax.map``), not as lanes.
+
+    Under ``vmap`` a ``while_loop`` runs every lane until the slowest has stopped and every
+    ``lax.cond`` inside becomes a select that computes both branches: ICP's first turn (normals)
+    on every turn, the search's k = 10 selection beside its k = 1 min, the row compactions of the
+    fallback passes whether or not a row needs them. One problem at a time, each stops at its own
+    iteration count and keeps its branches (64 problems of 5,000 points: ``docs/benchmarks_icp.md``).
+    Only the grid path (``N M > 2**22``) takes this rule; the small brute-force problems of
+    :func:`icp_multistart` stay lanes. Each problem's answer is that of a single call.
+    """
+    f = jax.custom_batching.custom_vmap(core)
+
+    @f.def_vmap
+    def _rule(axis_size, in_batched, *args):
+        flags = [b is True for b in in_batched]  # None: an absent argument (inlier_distance)
+
+        def one(xs):
+            it = iter(xs)
+            return f(*(next(it) if b else a for a, b in zip(args, flags, strict=True)))
+
+        out = jax.lax.map(one, [a for a, b in zip(args, flags, strict=True) if b])
+        return out, jax.tree.map(lambda _: True, out)
+
+    return f
 
 
 # ---------------------------------------------------------------------------
