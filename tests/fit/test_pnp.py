@@ -83,3 +83,30 @@ def test_fail_closed():
         solve_pnp(X, uv[:-1], K)
     with pytest.raises(ValueError, match="solve_pnp_ransac.*threshold_px"):
         solve_pnp_ransac(jax.random.PRNGKey(0), X, uv, K, threshold_px=0.0)
+
+
+def test_ransac_keeps_the_best_hypothesis_when_refinement_fails(monkeypatch):
+    """A refinement that hands back a worse pose (an LM that stops early in a wrong basin; the
+    refit on the inliers) is not taken: the result keeps the best hypothesis' inliers and says it
+    did not converge. The null (every refinement taken) loses most inliers."""
+    from fsjax.fit import pnp as P
+
+    X, uv, R, t, k = _scene(4, dist=None, noise=0.3)
+    good = solve_pnp_ransac(jax.random.PRNGKey(0), X, uv, K, threshold_px=2.0)
+    assert int(good.n_inliers) >= len(X) - k - 2 and bool(good.converged)
+    real = P._refine
+
+    def wrong_basin(R0, t0, *a):   # a "refinement" 20 degrees off, as an early-stopped LM may leave it
+        R1, t1, it, _ = real(R0, t0, *a)
+        return rodrigues(jnp.asarray([0.0, 0.35, 0.0], R1.dtype)) @ R1, t1, it, jnp.asarray(True)
+
+    monkeypatch.setattr(P, "_refine", wrong_basin)
+    jax.clear_caches()
+    res = solve_pnp_ransac(jax.random.PRNGKey(0), X, uv, K, threshold_px=2.0)
+    assert int(res.n_inliers) >= len(X) - k - 2, int(res.n_inliers)
+    assert not bool(res.converged) and _rot_err_deg(res.R, R) < 0.5
+    # the null: the same failing refinement taken unconditionally
+    monkeypatch.setattr(P, "_accept_refinement", lambda *a: jnp.asarray(True), raising=False)
+    jax.clear_caches()
+    bad = solve_pnp_ransac(jax.random.PRNGKey(0), X, uv, K, threshold_px=2.0)
+    assert int(bad.n_inliers) < (len(X) - k) // 2, int(bad.n_inliers)
