@@ -150,7 +150,11 @@ def _resid(y, args):
     R0, X, uv, w, K, dist = args
     R = rodrigues(y[:3]) @ R0
     p = _project_cw(R, y[3:], X, K, dist)
-    return ((p - uv) * w[:, None]).reshape(-1)
+    # a select, not only the 0/1 weight: a row outside the fit (padding at X = 0, an outlier) that
+    # falls behind the camera projects to NaN, and NaN * 0 is NaN -- one such row made the whole LM
+    # solve fail at its first step, leaving the unrefined DLT pose (project's own division is
+    # guarded, so the derivatives of these rows are finite and the select is safe to differentiate)
+    return jnp.where(w[:, None] > 0, (p - uv) * w[:, None], 0.0).reshape(-1)
 
 
 def _refine(R0, t0, X, uv, w, K, dist, max_steps):
