@@ -117,7 +117,7 @@ def _aot(fn, args, *, name, kind, static_kw=None):
     jf = jax.jit(lambda *a: fn(*a, **kw))
     c0, t0 = time.process_time(), time.perf_counter()
     traced = jf.trace(*args)
-    c1, t1 = time.process_time(), time.perf_counter()
+    _, t1 = time.process_time(), time.perf_counter()
     lowered = traced.lower()
     c2, t2 = time.process_time(), time.perf_counter()
     compiled = lowered.compile()
@@ -163,7 +163,6 @@ def bench_pipeline():
 
 def _examples(modules):
     """(qualified name, doctest) of every public function of ``modules`` with a docstring example."""
-    finder = doctest.DocTestFinder(recurse=False)
     seen, out = set(), []
     for mod in modules:
         for n in sorted(getattr(mod, "__all__", dir(mod))):
@@ -387,7 +386,29 @@ def write_doc(data):
         L += ["", "## Notes", ""] + [f"* {n}" for n in data["notes"]]
     if errs:
         L += ["", "## Not measured", ""] + [f"* {r['name']} ({r['kind']}): {r['error']}" for r in errs]
+    L += _kept_sections()
     DOC.write_text("\n".join(L) + "\n")
+
+
+# Hand-written sections of the doc that this script does not measure (the test suite's profile,
+# measured with pytest --durations): carried over verbatim when the doc is rewritten.
+KEPT = ("## Where the suite's time goes",)
+
+
+def _kept_sections() -> list[str]:
+    if not DOC.exists():
+        return []
+    lines, out, keep = DOC.read_text().splitlines(), [], False
+    for line in lines:
+        if line.startswith("## "):
+            keep = line.strip() in KEPT
+            if keep:
+                out.append("")
+        if keep:
+            out.append(line)
+    while out and not out[-1].strip():
+        out.pop()
+    return out
 
 
 def main():
