@@ -391,7 +391,29 @@ def write_doc(data):
         L += ["", "## Notes", ""] + [f"* {n}" for n in data["notes"]]
     if errs:
         L += ["", "## Not measured", ""] + [f"* {r['name']} ({r['kind']}): {r['error']}" for r in errs]
+    L += _kept_sections()
     DOC.write_text("\n".join(L) + "\n")
+
+
+# Hand-written sections of the doc that this script does not measure (the test suite's profile,
+# measured with pytest --durations): carried over verbatim when the doc is rewritten.
+KEPT = ("## Where the suite's time goes",)
+
+
+def _kept_sections() -> list[str]:
+    if not DOC.exists():
+        return []
+    lines, out, keep = DOC.read_text().splitlines(), [], False
+    for line in lines:
+        if line.startswith("## "):
+            keep = line.strip() in KEPT
+            if keep:
+                out.append("")
+        if keep:
+            out.append(line)
+    while out and not out[-1].strip():
+        out.pop()
+    return out
 
 
 def main():

@@ -541,15 +541,21 @@ def test_static_supports_bounded_by_the_image():
 def test_correlate1d_derivatives_are_convolutions_and_exact(dtype):
     """grad and jacfwd of the shift-and-add correlation go through its custom JVP (XLA
     convolutions: the transposed unrolled slices took 10.7 s to compile for 81 taps) and equal
-    the derivatives of the plain unrolled form, in x and in the (traced) weights, per mode."""
+    the derivatives of the plain unrolled form, in x and in the (traced) weights, per mode.
+    All 9 (axis, mode) cases' derivatives are one jitted program (eager, they compiled ~150
+    small programs per dtype; results bit-identical, compile CPU ~4.7 -> ~2.7 s per dtype)."""
     from fsjax.ops._common import _shift_add_plain, correlate1d, pad_axis
 
     rng = np.random.default_rng(3)
     x = jnp.asarray(rng.random((2, 11, 13)), dtype)
     w = jnp.asarray(rng.random(7), dtype)
     tol = 1e-4 if dtype == jnp.float32 else 1e-11
-    for axis in (0, 1, 2):
-        for mode in ("reflect", "constant", "wrap"):
+    cases = [(axis, mode) for axis in (0, 1, 2) for mode in ("reflect", "constant", "wrap")]
+
+    @jax.jit
+    def derivatives(x, w):
+        out = []
+        for axis, mode in cases:
             def new(x, w, axis=axis, mode=mode):
                 return jnp.sum(jnp.sin(correlate1d(x, w, axis, mode)))
 
@@ -557,10 +563,15 @@ def test_correlate1d_derivatives_are_convolutions_and_exact(dtype):
                 xp = pad_axis(x, 3, 3, axis, mode, 0.0)
                 return jnp.sum(jnp.sin(_shift_add_plain(xp, w, axis, x.shape[axis])))
 
-            for a, b in zip(jax.grad(new, (0, 1))(x, w), jax.grad(ref, (0, 1))(x, w)):
-                assert float(jnp.max(jnp.abs(a))) > 0.1
-                assert float(jnp.max(jnp.abs(a - b))) < tol, (axis, mode)
-            d = float(jnp.max(jnp.abs(jax.jacfwd(new, 1)(x, w) - jax.jacfwd(ref, 1)(x, w))))
-            assert d < tol, (axis, mode)
+            out.append((jax.grad(new, (0, 1))(x, w), jax.grad(ref, (0, 1))(x, w),
+                        jax.jacfwd(new, 1)(x, w), jax.jacfwd(ref, 1)(x, w)))
+        return out
+
+    for (axis, mode), (g_new, g_ref, j_new, j_ref) in zip(cases, derivatives(x, w)):
+        for a, b in zip(g_new, g_ref):
+            assert float(jnp.max(jnp.abs(a))) > 0.1
+            assert float(jnp.max(jnp.abs(a - b))) < tol, (axis, mode)
+        d = float(jnp.max(jnp.abs(j_new - j_ref)))
+        assert d < tol, (axis, mode)
     jaxpr = str(jax.make_jaxpr(jax.grad(lambda x: jnp.sum(correlate1d(x, w, 1) ** 2)))(x))
     assert "conv_general_dilated" in jaxpr

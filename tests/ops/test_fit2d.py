@@ -21,10 +21,13 @@ import fsjax
 N = 200
 
 
-def _contour(pts, n_valid=None):
+def _contour(pts, n_valid=None, dtype=np.float64):
+    """``pts`` in the first slots of an ``N``-point contour, the rest invalid. Every contour in this
+    file has this capacity, so each fit compiles once per configuration and dtype (a fit of 60
+    points and one of 100 are the same program; the fits weight out invalid slots)."""
     pts = np.asarray(pts, float)
     k = len(pts)
-    full = np.zeros((N, 2))
+    full = np.zeros((N, 2), dtype)
     full[:k] = pts
     valid = np.arange(N) < (k if n_valid is None else n_valid)
     return fsjax.Contour(jnp.asarray(full), jnp.asarray(valid))
@@ -287,8 +290,8 @@ def test_ellipse_on_a_straight_contour_refused():
     line = np.c_[np.linspace(2, 30, 60), 10 + 0.05 * rng.normal(size=60)]
     t = np.linspace(0, 2 * np.pi, 60, endpoint=False)
     ell = np.c_[15 + 10 * np.cos(t), 10 + 3 * np.sin(t)] + 0.05 * rng.normal(size=(60, 2))
-    fl = fsjax.ops.fit_ellipse(fsjax.Contour(jnp.asarray(line), valid=jnp.ones(60, bool)))
-    fe = fsjax.ops.fit_ellipse(fsjax.Contour(jnp.asarray(ell), valid=jnp.ones(60, bool)))
+    fl = fsjax.ops.fit_ellipse(_contour(line))
+    fe = fsjax.ops.fit_ellipse(_contour(ell))
     assert not bool(fl.converged) and bool(jnp.all(jnp.isnan(fl.params)))
     assert bool(fe.converged) and abs(float(fe.params[2]) - 10) < 0.1 and abs(float(fe.params[3]) - 3) < 0.1
 
@@ -324,11 +327,11 @@ def test_circle_and_ellipse_refuse_points_that_do_not_support_them(dtype):
                     "5 exact points": _ell(5, 12, 5, 0.0, 2 * np.pi, 9)}
 
     def run(op, pts):
-        return getattr(fsjax.ops, op)(fsjax.Contour(jnp.asarray(pts.astype(dtype))))
+        return getattr(fsjax.ops, op)(_contour(pts, dtype=dtype))
 
     for name, p in {**bad, **bad_circle_only}.items():
         f = run("fit_circle", p)
-        unchecked = fsjax.ops.fit_circle(fsjax.Contour(jnp.asarray(p.astype(dtype))), max_rel_rms=float("inf"),
+        unchecked = fsjax.ops.fit_circle(_contour(p, dtype=dtype), max_rel_rms=float("inf"),
                                          max_rel_se=float("inf"))
         assert not bool(f.converged) and bool(jnp.all(jnp.isnan(f.params))), ("circle", name)
         # the null (no support test) passes most of them off as circles
@@ -366,7 +369,7 @@ def test_fit_says_no_circle_no_ellipse_with_a_reason(dtype):
                 "two clusters": np.concatenate([rng.normal([10, 10], 1.0, (30, 2)), rng.normal([30, 25], 1.0, (30, 2))])}
     unsupported, ok, too_few, invalid = (reason_code(n) for n in ("unsupported_model", "ok", "too_few", "invalid_input"))
     max_iter = reason_code("max_iterations")
-    jfit = {op: jax.jit(lambda p, op=op: getattr(fsjax.ops, op)(fsjax.Contour(p))) for op in ("fit_circle", "fit_ellipse")}
+    jfit = {op: jax.jit(getattr(fsjax.ops, op)) for op in ("fit_circle", "fit_ellipse")}
     for name, p in no_model.items():
         for op in ("fit_circle", "fit_ellipse"):
             # On points that define no ellipse the ellipse LM's path is chaotic (a flat valley):
@@ -377,7 +380,8 @@ def test_fit_says_no_circle_no_ellipse_with_a_reason(dtype):
             # and a run of the suite with them, stop 34). Either way a
             # refusal with NaN and a reason; which of the two is not a property of the points.
             allowed = {unsupported} if op == "fit_circle" else {unsupported, max_iter}
-            for f in (getattr(fsjax.ops, op)(fsjax.Contour(jnp.asarray(p.astype(dtype)))), jfit[op](jnp.asarray(p.astype(dtype)))):
+            c = _contour(p, dtype=dtype)
+            for f in (getattr(fsjax.ops, op)(c), jfit[op](c)):
                 assert not bool(f.converged) and int(f.reason) in allowed, (op, name, int(f.reason))
                 assert ("unsupported model" in f.message or "maximum number of iterations" in f.message)
                 assert bool(jnp.all(jnp.isnan(f.params)))
@@ -385,10 +389,10 @@ def test_fit_says_no_circle_no_ellipse_with_a_reason(dtype):
             "fit_ellipse": [_ell(80, 20, 10, 0.3, 2 * np.pi, 3), _ell(80, 20, 10, 0.3, np.pi, 4)]}
     for op, cases in good.items():
         for p in cases:
-            f = getattr(fsjax.ops, op)(fsjax.Contour(jnp.asarray(p.astype(dtype))))
+            f = getattr(fsjax.ops, op)(_contour(p, dtype=dtype))
             assert bool(f.converged) and int(f.reason) == ok and f.message == "ok", (op, int(f.reason))
-    f = fsjax.ops.fit_circle(fsjax.Contour(jnp.asarray(_arc(2, 20, 0.0, np.pi, 5).astype(dtype))))
+    f = fsjax.ops.fit_circle(_contour(_arc(2, 20, 0.0, np.pi, 5), dtype=dtype))
     assert int(f.reason) == too_few and not bool(f.converged)
-    p = jnp.asarray(_arc(80, 20, 0.6, 2 * np.pi, 1).astype(dtype))
-    f = fsjax.ops.fit_circle(fsjax.Contour(p, truncated=jnp.asarray(True)))
+    c = _contour(_arc(80, 20, 0.6, 2 * np.pi, 1), dtype=dtype)
+    f = fsjax.ops.fit_circle(fsjax.Contour(c.points, c.valid, truncated=jnp.asarray(True)))
     assert int(f.reason) == invalid and not bool(f.converged)
