@@ -304,8 +304,9 @@ def _ransac(key, X, uv, K, dist, thr, n_hyp, max_steps):
     # The refit on the inliers and each refinement are kept only when they do not worsen the
     # RANSAC score (local optimisation as in LO-RANSAC: Chum, Matas, Kittler 2003): an algebraic
     # refit over many noisy inliers, or a Levenberg-Marquardt solve that stops early, could
-    # otherwise hand back a pose with a fraction of the best hypothesis' inliers (herzjesu-P8's
-    # third registration fell from ~400 to 73 of 423 that way).
+    # otherwise hand back a pose with a fraction of the best hypothesis' inliers. (herzjesu-P8's
+    # third registration fell to 73 of 423 through a NaN residual row, fixed in _resid; this rule
+    # is the backstop for any other early stop.)
     take0 = score(R0, t0) <= costs[b]
     R0, t0 = jnp.where(take0, R0, Rs[b]), jnp.where(take0, t0, ts[b])
 
