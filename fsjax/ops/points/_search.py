@@ -1254,8 +1254,10 @@ def _sample_core(v, f, face_valid, key, n):
     k1, k2 = jax.random.split(key)
     u = jax.random.uniform(k1, (n,), dtype=v.dtype)
     cdf = jnp.cumsum(area)
-    # the face whose cumulative-area interval holds u * total; zero-area faces have empty intervals
-    face = jnp.searchsorted(cdf, u * total, side="right", method="scan_unrolled")
+    # the face whose cumulative-area interval holds u * total; zero-area faces have empty intervals.
+    # The binary search as a loop ("scan"), not unrolled: the same faces (bit-identical), at 20,000
+    # samples of a 12,946-face mesh 1.95 -> 1.3 s CPU to compile and 3.9 -> 1.6 ms to run (stop 39)
+    face = jnp.searchsorted(cdf, u * total, side="right", method="scan")
     face = jnp.clip(face, 0, f.shape[0] - 1)
     # guard against rounding at the top end landing on a trailing zero-area face
     last = jnp.max(jnp.where(ok, jnp.arange(f.shape[0]), -1))
