@@ -381,6 +381,12 @@ def match_descriptors(desc_src, desc_tgt, valid_src=None, valid_tgt=None, *, mut
     ds, dt = jnp.asarray(desc_src), jnp.asarray(desc_tgt)
     vs = jnp.ones(ds.shape[0], bool) if valid_src is None else jnp.asarray(valid_src, bool)
     vt = jnp.ones(dt.shape[0], bool) if valid_tgt is None else jnp.asarray(valid_tgt, bool)
+    return _match_core(ds, dt, vs, vt, bool(mutual))
+
+
+@functools.partial(jax.jit, static_argnames=("mutual",))
+def _match_core(ds, dt, vs, vt, mutual: bool):
+    """The body of :func:`match_descriptors` as one program (an eager call compiled ~13 small ones)."""
     i_st, _ = knn(dt, ds, 1, ref_valid=vt)
     i_st = i_st[:, 0]
     ok = vs & (i_st >= 0)
