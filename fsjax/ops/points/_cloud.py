@@ -274,13 +274,6 @@ def voxel_downsample(pts: Points, /, *, voxel: float = 0.1, capacity: int | None
     check_positive(op, "voxel", voxel)
     n = pts.xyz.shape[0]
     cap = n if capacity is None else check_static_int(op, "capacity", capacity, lo=1)
-    return _voxel_downsample_core(pts, voxel, cap)
-
-
-@functools.partial(jax.jit, static_argnames=("cap",))
-def _voxel_downsample_core(pts: Points, voxel, cap: int) -> Points:
-    """The body of :func:`voxel_downsample` as one program (``voxel`` traced, ``cap`` static): an
-    eager call compiled ~40 small programs, one per primitive (stop 39)."""
     xyz = pts.xyz
     dt = xyz.dtype
     valid = _valid_mask(pts)
