@@ -36,6 +36,8 @@ parameters); on the bundled photographs the two agree to < 0.1 % in fx, fy, cx, 
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -211,6 +213,11 @@ def _camera(fx, fy, cx, cy, dist, rvec, tvec, width, height) -> Camera:
 
 def project_board(intr, rvec, tvec, board_xyz, width: int = 1, height: int = 1):
     """Pixels ``(P, 2)`` of board points under intrinsics ``intr = (fx, fy, cx, cy, k1, k2, p1, p2, k3)``."""
+    return _project_board(intr, rvec, tvec, board_xyz, width=width, height=height)
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height"))  # one program, not ~40 eager ones
+def _project_board(intr, rvec, tvec, board_xyz, width: int, height: int):
     intr = jnp.asarray(intr)
     cam = _camera(intr[0], intr[1], intr[2], intr[3], intr[4:9], jnp.asarray(rvec), jnp.asarray(tvec),
                   width, height)
@@ -344,20 +351,28 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
     keep = np.r_[dmask > 0, np.ones(6 * n, bool)]
     y, nsteps, ok, r, sd_full = _solve_and_std(jnp.asarray(y0, dt), args, max_steps, rtol, atol,
                                                tuple(np.nonzero(keep)[0].tolist()), bool(verbose))
-    sd_full = sd_full.at[:9].multiply(jnp.asarray(scale, dt))
-    intr, rv, tv = _unpack(y, scale_j, n)
-    d2 = jnp.sum(r.reshape(n, -1, 2) ** 2, axis=-1)
-    K = jnp.asarray([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]], dt)
-    K = K.at[0, 0].set(intr[0]).at[1, 1].set(intr[1]).at[0, 2].set(intr[2]).at[1, 2].set(intr[3])
+    K, intr, rv, tv, d2, fields = _finish(y, r, sd_full, jnp.asarray(scale, dt), scale_j, ok, n)
     if verbose:
         print(f"calibrate_camera: {int(nsteps)} steps, converged {bool(ok)}, "
-              f"rms {float(jnp.sqrt(jnp.mean(d2))):.4f} px", flush=True)
+              f"rms {float(fields['rms_px']):.4f} px", flush=True)
     return Calibration(
-        K=K, dist=intr[4:9], rvecs=rv, tvecs=tv, rms_px=jnp.sqrt(jnp.mean(d2)),
-        per_view_rms_px=jnp.sqrt(jnp.mean(d2, axis=1)), std=sd_full[:9], pose_std=sd_full[9:].reshape(n, 6),
-        init_K=jnp.asarray(K0, dt), iterations=nsteps, converged=ok,
-        reason=jnp.where(ok, reason_code("ok"), reason_code("max_iterations")).astype(jnp.int32),
-        width=width, height=height)
+        K=K, dist=intr[4:9], rvecs=rv, tvecs=tv, **fields, init_K=jnp.asarray(K0, dt), iterations=nsteps,
+        converged=ok, width=width, height=height)
+
+
+@functools.partial(jax.jit, static_argnames=("n",))
+def _finish(y, r, sd_full, scale, scale_j, ok, n):
+    """The solution unpacked: ``K``, intrinsics, poses, squared residuals per point, scaled std (one
+    program; eager, these few lines compiled ~30 small ones)."""
+    sd_full = sd_full.at[:9].multiply(scale)
+    intr, rv, tv = _unpack(y, scale_j, n)
+    d2 = jnp.sum(r.reshape(n, -1, 2) ** 2, axis=-1)
+    z, o = jnp.zeros_like(intr[0]), jnp.ones_like(intr[0])
+    K = jnp.stack([jnp.stack([intr[0], z, intr[2]]), jnp.stack([z, intr[1], intr[3]]), jnp.stack([z, z, o])])
+    fields = dict(rms_px=jnp.sqrt(jnp.mean(d2)), per_view_rms_px=jnp.sqrt(jnp.mean(d2, axis=1)), std=sd_full[:9],
+                  pose_std=sd_full[9:].reshape(n, 6),
+                  reason=jnp.where(ok, reason_code("ok"), reason_code("max_iterations")).astype(jnp.int32))
+    return K, intr, rv, tv, d2, fields
 
 
 # compiled with fsjax._linalg.FAST_COMPILE (calibrate_camera is called eagerly: its start is NumPy)
