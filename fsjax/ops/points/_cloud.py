@@ -274,6 +274,12 @@ def voxel_downsample(pts: Points, /, *, voxel: float = 0.1, capacity: int | None
     check_positive(op, "voxel", voxel)
     n = pts.xyz.shape[0]
     cap = n if capacity is None else check_static_int(op, "capacity", capacity, lo=1)
+    return _voxel_downsample_core(pts, voxel, cap)
+
+
+# One compiled program per cloud shape and capacity (op by op: ~25 small programs per shape).
+@functools.partial(jax.jit, static_argnames=("cap",))
+def _voxel_downsample_core(pts: Points, voxel, cap: int) -> Points:
     xyz = pts.xyz
     dt = xyz.dtype
     valid = _valid_mask(pts)

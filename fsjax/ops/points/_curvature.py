@@ -24,6 +24,9 @@ Conventions:
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import jax.numpy as jnp
 
 from ..._checks import check_static_int
@@ -132,6 +135,15 @@ def curvature(pts: Points, /, *, k: int = 24) -> PointValues:
     """
     op = "curvature"
     k = check_static_int(op, "k", k, lo=6, hi=32)
+    vals, valid = _curvature_core(pts, k)
+    # a row whose fit is ill-posed is not measured: invalid, and NaN as an invalid row holds
+    return PointValues(vals, CURVATURE_NAMES, valid=valid)
+
+
+# One compiled program per cloud shape and k: run op by op, the fit compiled ~90 small programs at
+# each new cloud size.
+@functools.partial(jax.jit, static_argnames=("k",))
+def _curvature_core(pts, k):
     valid = _valid_mask(pts)
     xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
     idx, _ = knn(xyz, xyz, k, ref_valid=valid)
@@ -147,6 +159,4 @@ def curvature(pts: Points, /, *, k: int = 24) -> PointValues:
     si = (2.0 / jnp.pi) * jnp.arctan2(k1 + k2, k1 - k2)
     cv = jnp.sqrt(0.5 * (k1 * k1 + k2 * k2))
     vals = jnp.stack([k1, k2, H, K, si, cv], axis=-1)
-    vals = jnp.where(ok[:, None], vals, jnp.nan)
-    # a row whose fit is ill-posed is not measured: invalid, and NaN as an invalid row holds
-    return PointValues(vals, CURVATURE_NAMES, valid=valid & ok)
+    return jnp.where(ok[:, None], vals, jnp.nan), valid & ok
