@@ -19,6 +19,8 @@ Conventions:
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -37,12 +39,19 @@ def volume_box(volume: Volume) -> tuple[jnp.ndarray, jnp.ndarray]:
     return -half, half
 
 
-def _trilinear(vol: jnp.ndarray, spacing, p: jnp.ndarray) -> jnp.ndarray:
+def _trilinear(vol: jnp.ndarray, spacing, p: jnp.ndarray, on_box: bool = False) -> jnp.ndarray:
+    """Trilinear samples of ``vol`` at world points ``p`` (0 outside the box of voxel centres).
+    ``on_box``: the points lie on the box by construction (ray samples between entry and exit), so
+    their voxel coordinates are clamped into it: a sample on a face must not fall outside by a
+    rounding, which differed between eager and compiled programs (the end samples of a ray were
+    dropped under ``jit``: MIP 11 %, DRR 1 % off at some pixels)."""
     D, H, W = vol.shape
     dz, dy, dx = spacing
     fx = p[..., 0] / dx + (W - 1) / 2.0
     fy = p[..., 1] / dy + (H - 1) / 2.0
     fz = p[..., 2] / dz + (D - 1) / 2.0
+    if on_box:
+        fx, fy, fz = jnp.clip(fx, 0, W - 1), jnp.clip(fy, 0, H - 1), jnp.clip(fz, 0, D - 1)
     inside = (fx >= 0) & (fx <= W - 1) & (fy >= 0) & (fy <= H - 1) & (fz >= 0) & (fz <= D - 1)
     x0 = jnp.clip(jnp.floor(fx), 0, max(W - 2, 0))
     y0 = jnp.clip(jnp.floor(fy), 0, max(H - 2, 0))
@@ -87,7 +96,12 @@ def project_volume(volume: Volume, camera: Camera, *, mode: str = "drr", n_sampl
         raise ValueError(f"{fn}(volume=...): expected one volume, got batch {volume.batch_shape}; use jax.vmap")
     check_choice(fn, "mode", mode, ("drr", "mip"))
     n_samples = check_static_int(fn, "n_samples", n_samples, lo=2)
-    n = int(n_samples)
+    return _project_core(volume, camera, mode, int(n_samples))
+
+
+@functools.partial(jax.jit, static_argnames=("mode", "n"))
+def _project_core(volume: Volume, camera: Camera, mode: str, n: int) -> Image:
+    """The body of :func:`project_volume` as one program (called eagerly it compiled ~80 small ones)."""
     vol = volume.data
     o, d = pixel_rays(camera)
     o = o.astype(vol.dtype)
@@ -109,7 +123,7 @@ def project_volume(volume: Volume, camera: Camera, *, mode: str = "drr", n_sampl
     p = o[..., None, :] + ts[..., None] * d[..., None, :]
     # keep samples on the box (rounding at the faces must not drop the end samples)
     p = jnp.clip(p, lo, hi)
-    vals = jax.vmap(lambda row: _trilinear(vol, volume.spacing, row))(p)
+    vals = jax.vmap(lambda row: _trilinear(vol, volume.spacing, row, on_box=True))(p)
     if mode == "drr":
         w = jnp.ones(n, vol.dtype).at[0].set(0.5).at[-1].set(0.5)
         out = jnp.sum(vals * w, axis=-1) * (tmax - tmin) / (n - 1)

@@ -1,5 +1,6 @@
 """Tomography: conformance with scikit-image, a three-material phantom, nulls, centre of rotation, DRR/MIP."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -160,6 +161,35 @@ def test_mip_finds_a_spike_where_it_projects():
     r, c = np.unravel_index(np.argmax(img), img.shape)
     print(f"MIP spike: peak {img.max():.3f} (true 5) at ({r}, {c}); projection ({float(uv[1]):.2f}, {float(uv[0]):.2f})")
     assert abs(r - float(uv[1])) <= 1.0 and abs(c - float(uv[0])) <= 1.0 and img.max() > 4.0
+
+
+def test_mip_and_drr_keep_the_samples_on_the_box_faces_under_jit():
+    # ray samples are placed on the box between entry and exit; a compiled program rounded some of
+    # the end samples (on the faces) outside the box, which dropped them: before the fix, MIP 11 %
+    # and DRR 6 % off at some pixels of this scene under jit, against the eager call
+    rng = np.random.default_rng(0)
+    vol = Volume(jnp.asarray(rng.random((20, 24, 28))), spacing=(0.5, 0.4, 0.3))
+    R, t = fsjax.render.look_at([1.0, 2.0, -15.0], [0.0, 0.0, 0.0], up=[0.0, -1.0, 0.0])
+    cam = Camera.from_intrinsics(60.0, 62.0, 15.5, 11.5, width=32, height=24, R=R, t=t)
+    worst = {}
+    for mode in ("mip", "drr"):
+        e = np.asarray(fsjax.render.project_volume(vol, cam, mode=mode, n_samples=64).data)
+        # compiled as a user's program is (the suite's XLA_FLAGS set LLVM level 0, which hid this)
+        f = jax.jit(lambda v, cc, m=mode: fsjax.render.project_volume(v, cc, mode=m, n_samples=64))
+        c = np.asarray(f.lower(vol, cam).compile(compiler_options={"xla_backend_optimization_level": 3})(vol, cam).data)
+        worst[mode] = float(np.max(np.abs(e - c)) / np.max(e))
+        assert (e > 0).sum() > 300
+    # a bright layer of voxel centres on the entry face: the MIP is 5 wherever a ray starts on it
+    data = np.zeros((7, 8, 9))
+    data[0] = 5.0
+    face = Volume(jnp.asarray(data), spacing=(0.5, 0.4, 0.3))
+    cam2 = _cam([0.3, 0.2, -9.0], [0.0, 0.0, 0.0], w=23, h=19, f=40.0)
+    mip = np.asarray(jax.jit(lambda v, cc: fsjax.render.project_volume(v, cc, mode="mip", n_samples=32))(face, cam2).data)
+    hit = mip > 0
+    print(f"project_volume eager vs jit: max rel. difference MIP {worst['mip']:.1e}, DRR {worst['drr']:.1e}; "
+          f"face-layer MIP {mip[hit].min():.12f} on {hit.sum()} rays (true 5)")
+    assert worst["mip"] < 1e-12 and worst["drr"] < 1e-12
+    assert hit.sum() > 50 and np.allclose(mip[hit], 5.0, rtol=1e-12)
 
 
 def test_bad_input():
