@@ -102,6 +102,11 @@ def _project(K, w, t, X):
 
 def reprojection_residuals(K, rotvecs, translations, points, cam_idx, pt_idx, uv):
     """Per-observation residuals ``(n_obs, 2)``: projected minus observed pixel (u, v)."""
+    return _reprojection_residuals(K, rotvecs, translations, points, cam_idx, pt_idx, uv)
+
+
+@jax.jit  # one program (called eagerly, the vmap compiled ~40 small ones)
+def _reprojection_residuals(K, rotvecs, translations, points, cam_idx, pt_idx, uv):
     return jax.vmap(lambda c, p, o: _project(K, rotvecs[c], translations[c], points[p]) - o)(cam_idx, pt_idx, uv)
 
 
