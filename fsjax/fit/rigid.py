@@ -20,6 +20,8 @@ Conventions (stated once for the registration modules ``rigid``, ``icp``, ``glob
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
@@ -293,6 +295,14 @@ def kabsch_umeyama(
     w = jnp.ones(src.shape[0], dtype) if weights is None else jnp.asarray(weights, dtype)
     if w.shape != src.shape[:1]:
         raise ValueError(f"kabsch_umeyama: argument 'weights' must have shape {src.shape[:1]}, got {w.shape}")
+    return _kabsch_core(src, dst, w, bool(with_scale))
+
+
+@functools.partial(jax.jit, static_argnames=("with_scale",))
+def _kabsch_core(src, dst, w, with_scale: bool) -> RigidFit:
+    """The body of :func:`kabsch_umeyama` after its shape checks, one program (an eager call
+    compiled ~40 small ones)."""
+    dtype = src.dtype
     use = w > 0
     finite = jnp.all(jnp.where(use[:, None], jnp.isfinite(src) & jnp.isfinite(dst), True)) & jnp.all(jnp.isfinite(w))
     w = jnp.where(use & finite, w, 0.0)
