@@ -50,6 +50,43 @@ def test_three_views_registered_and_accurate(views, rec):
             assert (rec.R[i] @ p + rec.t[i])[2] > 0
     flags = {(e["i"], e["j"]): e["flag"] for e in rec.view_graph}
     assert flags[(0, 1)] == flags[(1, 2)] == "ok"
+    # general pairs are not flagged planar: a homography explains well under 90 % of E's inliers
+    for e in rec.view_graph:
+        if e["flag"] == "ok":
+            assert e["h_inliers"] < 0.8 * e["inliers"], e
+
+
+def _rel_errors(R, t, Rt, tt):
+    r = np.degrees(np.arccos(np.clip((np.trace(np.asarray(R).T @ Rt) - 1) / 2, -1, 1)))
+    c = np.asarray(t) @ tt / np.linalg.norm(t) / np.linalg.norm(tt)
+    return r, np.degrees(np.arccos(np.clip(c, -1, 1)))
+
+
+def test_planar_scene_flagged_and_reconstructed(views):
+    # a plane seen from two general views: view 1 is a photograph lying on the plane n . X = 1
+    # (camera-1 frame), view 2 the same plane seen after a rotation and a translation (the
+    # plane-induced homography K (R + t n^T) K^-1 applied to the photograph)
+    from fsjax.fit.calibrate import rodrigues
+
+    imgs, (K, _, _) = views
+    R = np.asarray(rodrigues(np.array([0.08, 0.1, 0.0])))
+    t = np.array([-0.3, 0.1, 0.0])
+    n = np.array([0.0, -0.2, 1.0]) / np.linalg.norm([0.0, -0.2, 1.0])
+    H = K @ (R + np.outer(t, n)) @ np.linalg.inv(K)
+    img2 = cv2.warpPerspective(imgs[1], H, (384, 256))
+    rec = reconstruct([imgs[1], img2], K, **KW)
+    (e,) = rec.view_graph
+    assert e["flag"] == "planar" and e["h_inliers"] >= 0.9 * e["inliers"] and e["pose"] == "homography", e
+    assert rec.registered.all() and len(rec.points) > 100 and rec.rms_px < 0.5
+    Rr = rec.R[1] @ rec.R[0].T
+    rot, tdir = _rel_errors(Rr, rec.t[1] - Rr @ rec.t[0], R, t)
+    assert rot < 0.2 and tdir < 0.5, (rot, tdir)
+    # the points lie on one plane (smallest singular value of the centred points ~ 0)
+    sv = np.linalg.svd(rec.points - rec.points.mean(0), compute_uv=False)
+    assert sv[2] < 0.01 * sv[1], sv
+    # the other physical solution of the homography (the null a two-view plane allows) puts fewer
+    # of the inliers in front of both cameras: cheirality chose, the report shows both counts
+    assert e["front"][0] > 1.2 * e["front"][1], e["front"]
 
 
 def test_local_bundle_adjustment_path(views, rec):
@@ -90,6 +127,8 @@ def test_unrelated_photo_and_pure_rotation_fail_honestly(views):
     assert len(rec.reasons[3]) > 10
     flags = {(e["i"], e["j"]): e["flag"] for e in rec.view_graph}
     assert flags[(1, 4)] == "pure_rotation"  # flagged, not triangulated
+    e14 = next(e for e in rec.view_graph if (e["i"], e["j"]) == (1, 4))
+    assert e14["h_inliers"] >= 0.9 * e14["inliers"] and "pose" not in e14, e14
     assert all(flags[(i, 3)] in ("few_matches", "few_inliers") for i in range(3))
     assert rec.registered[:3].all()
 
