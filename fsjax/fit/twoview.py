@@ -1,4 +1,5 @@
-"""Two-view geometry: normalised 8-point F and E, essential decomposition, triangulation, RANSAC.
+"""Two-view geometry: normalised 8-point F and E, essential decomposition, triangulation, RANSAC;
+homographies (normalised DLT, RANSAC, decomposition) for planar scenes and rotation-only pairs.
 
 Conventions:
 

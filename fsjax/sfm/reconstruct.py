@@ -586,6 +586,13 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
     rms = ba(50)
     rms = ba(50)
     for i in np.nonzero(~reg)[0]:
+        mine = [e for e in graph if int(i) in (e["i"], e["j"])]
+        if not any(e["flag"] in ("ok", "planar", "pure_rotation") for e in mine):
+            # no edge at all: say so, with its best pair (an unrelated photograph)
+            b = max(mine, key=lambda e: (max(e["inliers"], e.get("h_inliers", 0)), e["matches"]))
+            other = names[b["j"] if b["i"] == i else b["i"]]
+            reasons[int(i)] = (f"no verified pair with any image (best: {other}, {b['matches']} matches, "
+                               f"{max(b['inliers'], b.get('h_inliers', 0))} inliers; an edge needs >= {min_inliers})")
         reasons.setdefault(int(i), "never reached: no verified pair links it to the registered images")
     times["reconstruction"] = time.perf_counter() - t0
     times["bundle_adjustment"] = ba_time[0]

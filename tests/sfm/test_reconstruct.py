@@ -5,6 +5,7 @@ photograph and a pure-rotation pair."""
 import numpy as np
 import pytest
 
+from fsjax.sfm.export import read_colmap_text as read_colmap
 from fsjax.sfm.reconstruct import align_to_ground_truth, reconstruct
 
 from ._data import DATA, NAMES, cameras
@@ -182,3 +183,62 @@ def test_cli_sfm_writes_report(tmp_path):
     with pytest.raises(SystemExit):
         main(["sfm"])
     assert main(["sfm", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o2")]) == 2
+
+
+@pytest.mark.slow
+def test_three_unrelated_photographs_left_out_at_full_size(tmp_path):
+    # three fountain-P11 views at the set's 768 x 512 and three chessboard photographs (another
+    # scene, resized to 768 x 512; they match one another: the same board) in one folder, through
+    # the command line: the fountain views are registered, every chessboard is left out with a reason
+    from fsjax.cli import main
+    from fsjax.sfm.run import load_ground_truth
+
+    img_dir = tmp_path / "imgs"
+    img_dir.mkdir()
+    names = [f"fountain768_000{i}.jpg" for i in (4, 5, 6)] + [f"chessboard_left{i}.jpg" for i in ("01", "05", "12")]
+    for nm in names:
+        (img_dir / nm).write_bytes((DATA / nm).read_bytes())
+    gt = load_ground_truth(DATA / "cameras768.json")
+    K = gt[names[0]][0]
+    code = main(["sfm", str(img_dir), "--out", str(tmp_path / "out"), "--ground-truth", str(DATA / "cameras768.json"),
+                 "--intrinsics", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}"])
+    assert code == 0
+    rep = (tmp_path / "out" / "report.md").read_text()
+    assert "Registered **3/6** images" in rep, rep[:400]
+    rows = {ln.split("|")[1].strip(): ln.split("|") for ln in rep.splitlines() if ln.startswith("| chessboard_")
+            or ln.startswith("| fountain768_")}
+    for nm in names:
+        row = rows[nm]
+        if nm.startswith("fountain"):
+            assert row[2].strip() == "yes", row
+        else:  # not registered, and a reason stated
+            assert row[2].strip() == "no" and "no verified pair with any image" in row[4], row
+    # the fountain views are where they belong (three centres on an arc fix the aligning rotation
+    # poorly: take it from the camera rotations, as _errors above)
+    m = read_colmap(tmp_path / "out" / "sparse")
+    ims = sorted(m["images"].values(), key=lambda im: im["name"])
+    assert [im["name"] for im in ims] == names[:3]
+    Rcw = np.array([im["R"] for im in ims])
+    C = -np.einsum("nji,nj->ni", Rcw, np.array([im["t"] for im in ims]))
+    rot, cen = align_to_ground_truth(C, Rcw, np.array([gt[nm][2] for nm in names[:3]]),
+                                     np.array([gt[nm][1] for nm in names[:3]]), rotation_from="rotations")
+    baseline = np.linalg.norm(gt[names[0]][2] - gt[names[2]][2])
+    print(f"three fountain views at 768 x 512 among three chessboards: rotation error {np.round(rot, 3)} deg, "
+          f"centre error {np.round(cen / baseline, 4)} baselines")
+    assert rot.max() < 0.3 and cen.max() < 0.01 * baseline, (rot, cen, baseline)
+
+
+def test_cli_refuses_photographs_of_two_sizes(tmp_path):
+    from fsjax.cli import main
+
+    img_dir = tmp_path / "imgs"
+    img_dir.mkdir()
+    for nm in NAMES[:2] + ("chessboard_left01.jpg",):
+        (img_dir / nm).write_bytes((DATA / nm).read_bytes())
+    from fsjax.sfm.export import load_image_dir
+    from fsjax.sfm.run import check_one_size
+
+    with pytest.raises(ValueError, match=r"one size.*2 are 384x256, but not 'chessboard_left01.jpg' \(768x512\)"):
+        check_one_size(*load_image_dir(img_dir))
+    assert main(["sfm", str(img_dir), "--out", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out" / "report.md").exists()
