@@ -522,10 +522,13 @@ def homography_ransac(key, uv1, uv2, *, threshold_px: float = 1.5, n_hypotheses:
     1. ``n_hypotheses`` random 4-point samples, each fitted by :func:`fit_homography` and scored
        by the truncated-quadratic MSAC cost of the symmetric transfer distance
        (:func:`homography_transfer_px`), all in one ``vmap``.
-    2. The best hypothesis's inliers (distance < ``threshold_px``) refitted twice by the weighted
-       DLT, then Levenberg-Marquardt (optimistix) on their forward and backward transfer residuals
-       (``H = H0 (I + P)``, ``P`` eight free entries, ``P[2, 2] = 0``); inliers are re-read. A
-       refinement is kept only when it does not lose inliers (LO-RANSAC's acceptance rule).
+    2. Refinement on the inliers: the best hypothesis's inliers (distance < ``threshold_px``)
+       refitted twice by the weighted normalised DLT (H&Z algorithm 4.6, step iii), each refit
+       kept only when it does not lose inliers (LO-RANSAC's acceptance rule). Not done: a
+       Levenberg-Marquardt polish of the transfer residuals (the "gold standard" of H&Z 4.2): tried
+       with optimistix, it cost 0.45 s CPU per call against 0.02 s for the rest (512 padded
+       correspondences, float32) and changed neither the inliers nor the RMS on a test scene
+       (200 / 200, 0.4625 px).
 
     Non-finite rows (padding) are never sampled nor counted. Used by :mod:`fsjax.sfm` to tell
     general pairs from planar scenes and rotation-only pairs (the inlier count against the
@@ -563,16 +566,6 @@ def homography_ransac(key, uv1, uv2, *, threshold_px: float = 1.5, n_hypotheses:
     return _homography_ransac(key, uv1, uv2, jnp.asarray(threshold_px, uv1.dtype), int(n_hypotheses))
 
 
-def _transfer_resid(p, args):
-    H0, u1, u2, w = args
-    P = jnp.concatenate([p, jnp.zeros(1, p.dtype)]).reshape(3, 3)
-    H = H0 @ (jnp.eye(3, dtype=p.dtype) + P)
-    f, _ = _map(H, u1)
-    b, _ = _map(_adjugate3(H), u2)
-    r = jnp.concatenate([f - u2, b - u1], 1) * w[:, None]
-    return jnp.where(w[:, None] > 0, r, 0.0)
-
-
 @jit_fast_compile(static_argnames=("n_hyp",))
 def _homography_ransac(key, uv1, uv2, thr, n_hyp):
     n = uv1.shape[0]
@@ -601,13 +594,6 @@ def _homography_ransac(key, uv1, uv2, thr, n_hyp):
         nr = jnp.sum(dist(Hr) < thr)
         H = jnp.where(nr >= best, Hr, H)
         best = jnp.maximum(nr, best)
-    w = (dist(H) < thr).astype(dt)
-    sol = optx.least_squares(_transfer_resid, levenberg_marquardt(1e-8, 1e-10), jnp.zeros(8, dt), (H, u1, u2, w),
-                             max_steps=30, throw=False)
-    Hl = H @ (jnp.eye(3, dtype=dt) + jnp.concatenate([sol.value, jnp.zeros(1, dt)]).reshape(3, 3))
-    Hl = Hl / jnp.linalg.norm(Hl)
-    nl = jnp.sum(dist(Hl) < thr)
-    H = jnp.where((nl >= best) & jnp.all(jnp.isfinite(Hl)), Hl, H)
     d = dist(H)
     inl = d < thr
     n_in = jnp.sum(inl)
