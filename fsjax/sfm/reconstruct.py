@@ -39,8 +39,8 @@ Stages (each timed; ``Reconstruction.times_s``):
    pairs first and from planar pairs only when no general pair has the angle.
 4. **tracks**: union-find over the inlier matches; a track that holds two keypoints of one
    image (inconsistent matches) is dropped.
-5. **reconstruction**: the initial pair maximises inliers among edges whose median triangulation
-   angle is >= ``init_angle_deg``; then repeatedly the unregistered image seeing the most
+5. **reconstruction**: the initial pair maximises inliers among general (``ok``) edges whose median
+   triangulation angle is >= ``init_angle_deg`` (``planar`` edges only when no general one qualifies); then repeatedly the unregistered image seeing the most
    triangulated tracks is registered by :func:`fsjax.fit.pnp.solve_pnp_ransac` (reprojection
    threshold ``max_reproj_px``), new tracks are triangulated (DLT over all registered views;
    kept when every kept view reprojects within ``max_reproj_px``, depth is positive and the
