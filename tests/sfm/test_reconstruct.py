@@ -174,6 +174,10 @@ def test_cli_sfm_writes_report(tmp_path):
     assert code == 0
     rep = (tmp_path / "out" / "report.md").read_text()
     assert "Registered **2/2** images" in rep and "| features |" in rep
+    # the view graph lists E and H inliers and the flag of the pair (a general pair: ok)
+    assert "| pair | matches | inliers (E) | inliers (H) | flag | note |" in rep
+    row = next(ln for ln in rep.splitlines() if ln.startswith(f"| {NAMES[0]}-{NAMES[1]} |")).split("|")
+    assert row[5].strip() == "ok" and 0 < int(row[4]) < int(row[3]), row
     assert (tmp_path / "out" / "sparse" / "points3D.txt").exists() and (tmp_path / "out" / "points.ply").exists()
     # the photographs' folder is recorded for `fsjax splat SFM_DIR`, which finds them through it
     from fsjax.sfm.splat import load_sfm_views
