@@ -499,7 +499,7 @@ class HomographyResult(FitResult):
         H: ``(3, 3)`` homography ``[uv2, 1] ~ H [uv1, 1]``, Frobenius norm 1 (NaN unless ``converged``).
         inliers: ``(N,)`` symmetric transfer distance below the threshold.
         n_inliers: their count.
-        transfer_rms_px: RMS symmetric transfer distance of the inliers (px).
+        rms_px: RMS symmetric transfer distance of the inliers (px).
         converged: ``reason`` is ``ok``.
         reason: int32 code of :data:`fsjax.types.RESULTS`: ``ok``, ``too_few`` (fewer than 4
           correspondences), ``too_few_inliers`` (fewer than 4 inliers).
@@ -509,11 +509,11 @@ class HomographyResult(FitResult):
     H: Float[Array, "3 3"]
     inliers: Bool[Array, " N"]
     n_inliers: Int[Array, ""]
-    transfer_rms_px: Float[Array, ""]
+    rms_px: Float[Array, ""]
     converged: Bool[Array, ""]
     reason: Int[Array, ""]
     iterations: Int[Array, ""]
-    residual_name = "transfer_rms_px"
+    residual_name = "rms_px"
 
 
 def homography_ransac(key, uv1, uv2, *, threshold_px: float = 1.5, n_hypotheses: int = 256) -> HomographyResult:
@@ -602,7 +602,7 @@ def _homography_ransac(key, uv1, uv2, thr, n_hyp):
                        jnp.where(n_in < 4, reason_code("too_few_inliers"), reason_code("ok"))).astype(jnp.int32)
     ok = reason == reason_code("ok")
     return HomographyResult(H=jnp.where(ok, H, jnp.nan), inliers=inl & ok, n_inliers=jnp.where(ok, n_in, 0),
-                            transfer_rms_px=rms, converged=ok, reason=reason,
+                            rms_px=rms, converged=ok, reason=reason,
                             iterations=jnp.asarray(n_hyp, jnp.int32))
 
 

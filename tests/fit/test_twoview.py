@@ -135,7 +135,7 @@ def test_homography_ransac_tells_planes_from_general_scenes(seed):
     Htrue = K @ (R + np.outer(t, n)) @ np.linalg.inv(K)
     d_true = np.asarray(homography_transfer_px(jnp.asarray(h.H), _project(X), _project(X @ R.T + t)))
     print(f"plane seed {seed}: H inliers {int(h.n_inliers)} (outliers kept {inl[:k].sum()}/{k}), E inliers "
-          f"{int(e.n_inliers)} ('{e.message}'); transfer RMS {float(h.transfer_rms_px):.3f} px; noise-free points "
+          f"{int(e.n_inliers)} ('{e.message}'); transfer RMS {float(h.rms_px):.3f} px; noise-free points "
           f"off the fitted H by median {np.median(d_true[k:]):.3f} px")
     assert bool(h.converged) and h.message == "ok" and inl[:k].sum() == 0 and inl[k:].mean() > 0.95
     assert int(h.n_inliers) >= 0.9 * int(e.n_inliers)
