@@ -184,3 +184,15 @@ def test_homography_building_blocks_and_fail_closed():
         homography_ransac(jax.random.PRNGKey(0), np.zeros((10, 2)), np.zeros((9, 2)))
     with pytest.raises(ValueError, match="homography_ransac.*threshold_px"):
         homography_ransac(jax.random.PRNGKey(0), uv1, uv2, threshold_px=0.0)
+
+
+def test_homography_ransac_float32():
+    # float32 data (the library's default) with x64 on: same inliers as float64 within a few, H as good
+    uv1, uv2, R, t, X, k = _plane_scene(0)
+    r64 = homography_ransac(jax.random.PRNGKey(0), uv1, uv2, threshold_px=1.875)
+    r32 = homography_ransac(jax.random.PRNGKey(0), jnp.asarray(uv1, jnp.float32), jnp.asarray(uv2, jnp.float32),
+                            threshold_px=1.875)
+    assert r32.H.dtype == jnp.float32 and bool(r32.converged)
+    assert abs(int(r32.n_inliers) - int(r64.n_inliers)) <= 3 and not np.asarray(r32.inliers)[:k].any()
+    d = np.asarray(homography_transfer_px(np.asarray(r32.H, float), _project(X), _project(X @ R.T + t)))
+    assert np.median(d[k:]) < 0.2
