@@ -22,7 +22,8 @@
 
 ``fsjax sfm IMAGE_DIR --out DIR [--intrinsics fx,fy,cx,cy] [--ground-truth cameras.json]``
     structure from motion (:mod:`fsjax.sfm`): ``DIR/report.md``, ``DIR/sparse/*.txt`` (COLMAP
-    text), ``DIR/points.ply``. ``IMAGE_DIR`` may be a video file: frames chosen by accumulated
+    text), ``DIR/points.ply``. The photographs must share one size (one camera): a folder of mixed
+    sizes is refused, naming the odd files (exit 2). ``IMAGE_DIR`` may be a video file: frames chosen by accumulated
     rotation (``--rotation-deg``, ``--max-gap``; :mod:`fsjax.sfm.video`, needs the ``video`` extra).
 ``fsjax splat SFM_DIR --out DIR [--images IMAGE_DIR] [--width 192] [--steps N]``
     Gaussian splats trained on the photographs with the cameras of an ``fsjax sfm`` result
@@ -385,7 +386,7 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_fuzz)
 
     p = sub.add_parser("sfm", help="structure from motion on a folder of photographs or a video; DIR/report.md, COLMAP text, PLY")
-    p.add_argument("image_dir", help="folder of .jpg/.png photographs, or a video file (.mp4, .mov, ...)")
+    p.add_argument("image_dir", help="folder of .jpg/.png photographs of one size, or a video file (.mp4, .mov, ...)")
     p.add_argument("--out", required=True)
     p.add_argument("--intrinsics", help="fx,fy,cx,cy in pixels (pixel centres on integers); default: one focal length self-calibrated, principal point at the centre (image folders)")
     p.add_argument("--ground-truth", help="cameras.json to score against (as in ../shared/data/sfm)")

@@ -15,7 +15,8 @@ The fits, by module (every public name is re-exported here, ``fsjax.fit.<name>``
   angles, model selection (:class:`ModelSelection`);
 * :mod:`.chessboard` -- chessboard corners (:class:`ChessboardCorners`);
 * :mod:`.calibrate` -- Zhang + LM camera calibration (:class:`Calibration`);
-* :mod:`.twoview` -- essential matrix RANSAC, relative pose (:class:`TwoViewResult`);
+* :mod:`.twoview` -- essential matrix RANSAC, relative pose (:class:`TwoViewResult`); homography
+  RANSAC (:class:`HomographyResult`) and its decomposition;
 * :mod:`.pnp` -- DLT + LM PnP, RANSAC (:class:`PnPResult`);
 * :mod:`.bundle_adjust` -- sparse bundle adjustment (:class:`BundleResult`);
 * :mod:`.splat_train` -- Gaussian-splat training (:class:`SplatTrainResult`);

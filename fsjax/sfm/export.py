@@ -246,10 +246,22 @@ def write_report(rec, out_dir, *, title: str = "fsjax sfm", evaluation: dict | N
     for i, nm in enumerate(rec.names):
         o = rec.registration_order.index(i) + 1 if i in rec.registration_order else ""
         L.append(f"| {nm} | {'yes' if rec.registered[i] else 'no'} | {o} | {rec.reasons.get(i, '')} |")
-    L += ["", "## View graph (pairs with matches)", "", "| pair | matches | inliers | flag |", "|---|---|---|---|"]
+    L += ["", "## View graph (pairs with matches)", "",
+          "Flags: `ok` a general pair (essential matrix); `planar` a homography explains >= 90 % of the essential "
+          "matrix's inliers and they show parallax (a plane: pose from the homography, whose two solutions are "
+          "told apart by the inliers in front of both cameras, counts given); `pure_rotation` the homography "
+          "explains them without parallax (never triangulated alone); `few_matches`, `few_inliers`, `no_pose`: "
+          "not an edge.", "",
+          "| pair | matches | inliers (E) | inliers (H) | flag | note |", "|---|---|---|---|---|---|"]
     for e in rec.view_graph:
         if e["matches"]:
-            L.append(f"| {rec.names[e['i']]}-{rec.names[e['j']]} | {e['matches']} | {e['inliers']} | {e['flag']} |")
+            note = ""
+            if e["flag"] == "planar":
+                note = f"in front: {e['front'][0]} (chosen) vs {e['front'][1]} (other solution)"
+            elif "parallax_px" in e:
+                note = f"parallax {e['parallax_px']:.2f} px"
+            L.append(f"| {rec.names[e['i']]}-{rec.names[e['j']]} | {e['matches']} | {e['inliers']} | "
+                     f"{e.get('h_inliers', '')} | {e['flag']} | {note} |")
     path = out / "report.md"
     path.write_text("\n".join(L) + "\n")
     return path

@@ -19,10 +19,28 @@ Stages (each timed; ``Reconstruction.times_s``):
    ``vmap`` of ``n_hypotheses`` samples. A pair is an edge of the view graph with its inlier
    count when it has >= ``min_inliers`` inliers; a pair without parallax is flagged
    ``pure_rotation`` and never used to initialise or triangulate alone.
+   Beside E, a homography (:func:`fsjax.fit.twoview.homography_ransac`: 4-point normalised DLT
+   hypotheses in one ``vmap``, half as many as E's, since a 4-point sample is outlier-free far
+   more often than an 8-point one; weighted refits on the inliers) with the threshold
+   ``1.25 threshold_px`` on its transfer distance (``sqrt(5.99 / 3.84)``: the 95 % quantiles of
+   a codimension-2 and a codimension-1 model, Hartley and Zisserman 2004, table 4.1, so both
+   count the same noise alike). **The rule**: a scene point on one plane, or any point when
+   the camera only turns, maps by one homography (H&Z sections 13.1 and 8.4), and then the
+   essential matrix adds nothing (H&Z 11.9: the 8-point system is rank-deficient for coplanar
+   points). So when H's inliers are >= ``h_ratio`` (0.9) of E's, the pair is degenerate for E:
+   ``pure_rotation`` when the H inliers have less than ``min_parallax_px`` of parallax (the best
+   single rotation aligns their bearings, :func:`fsjax.fit.twoview.rotation_parallax`), else
+   ``planar``. COLMAP's two-view geometry compares the same inlier ratio with 0.8; 0.9 here
+   because herzjesu-P8's wide-baseline facade pairs measure 0.80-0.82 and are reconstructed
+   accurately from E (their other 18-20 % of inliers, 100-160 points, fix it), while a plane
+   measures 0.98-0.99 (tests). A planar pair's pose comes from the homography
+   (:func:`fsjax.fit.twoview.decompose_homography`), the solution putting more H inliers in front
+   of both cameras; its H inliers feed the tracks. The initial pair is chosen among general
+   pairs first and from planar pairs only when no general pair has the angle.
 4. **tracks**: union-find over the inlier matches; a track that holds two keypoints of one
    image (inconsistent matches) is dropped.
-5. **reconstruction**: the initial pair maximises inliers among edges whose median triangulation
-   angle is >= ``init_angle_deg``; then repeatedly the unregistered image seeing the most
+5. **reconstruction**: the initial pair maximises inliers among general (``ok``) edges whose median
+   triangulation angle is >= ``init_angle_deg`` (``planar`` edges only when no general one qualifies); then repeatedly the unregistered image seeing the most
    triangulated tracks is registered by :func:`fsjax.fit.pnp.solve_pnp_ransac` (reprojection
    threshold ``max_reproj_px``), new tracks are triangulated (DLT over all registered views;
    kept when every kept view reprojects within ``max_reproj_px``, depth is positive and the
@@ -52,7 +70,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..fit.pnp import solve_pnp_ransac
-from ..fit.twoview import relative_pose
+from ..fit.twoview import decompose_homography, homography_ransac, relative_pose, rotation_parallax
 from ..types.results import reason_code
 from .bundle import bundle_adjust_masked, observation_pairs
 from .features import detect_and_describe
@@ -133,6 +151,44 @@ def _bucket(k: int, lo: int, linear: bool = False) -> int:
     return c
 
 
+_parallax = jax.jit(rotation_parallax)
+
+
+def _parallax_px(uv1, uv2, inl, K, m_pad) -> float:
+    """Median residual (px) of the best single rotation aligning the bearings of the inliers ``inl``."""
+    Kinv = np.linalg.inv(K)
+    x1 = (np.c_[uv1, np.ones(len(uv1))] @ Kinv.T)[:, :2]
+    x2 = (np.c_[uv2, np.ones(len(uv2))] @ Kinv.T)[:, :2]
+    _, res = _parallax(jnp.asarray(_pad(x1, m_pad, 0.0)), jnp.asarray(_pad(x2, m_pad, 0.0)),
+                       jnp.asarray(_pad(inl.astype(np.float64), m_pad, 0.0)))
+    return float(np.median(np.asarray(res)[:len(inl)][inl]) * 0.5 * (K[0, 0] + K[1, 1]))
+
+
+def _planar_pose(H, uv1, uv2, K):
+    """Pose of a planar pair from its homography: of the two solutions whose plane faces camera 1
+    (:func:`fsjax.fit.twoview.decompose_homography`), the one putting more H inliers in front of
+    both cameras; ``(R, unit t, camera-1 points in front, (in front, in front for the other))``.
+    The two are often both physical (Longuet-Higgins 1986): then the choice is a guess the report
+    shows (``front`` counts nearly equal)."""
+    Rs, ts, _ = (np.asarray(v) for v in decompose_homography(jnp.asarray(H), jnp.asarray(K)))
+    Kinv = np.linalg.inv(K)
+    x1 = np.c_[uv1, np.ones(len(uv1))] @ Kinv.T
+    x2 = np.c_[uv2, np.ones(len(uv2))] @ Kinv.T
+    best = []
+    for R, t in zip(Rs[:2], ts[:2]):
+        t = t / np.linalg.norm(t)
+        P2 = np.c_[R, t]
+        P1 = np.eye(3, 4)
+        A = np.stack([x1[:, :1] * P1[2] - P1[0], x1[:, 1:2] * P1[2] - P1[1],
+                      x2[:, :1] * P2[2] - P2[0], x2[:, 1:2] * P2[2] - P2[1]], 1)
+        Xh = np.linalg.svd(A)[2][:, -1]
+        X = Xh[:, :3] / np.where(np.abs(Xh[:, 3:]) > 1e-12, Xh[:, 3:], np.nan)
+        ok = np.isfinite(X).all(1) & (X[:, 2] > 0) & (X @ R[2] + t[2] > 0)
+        best.append((int(ok.sum()), R, t, X[ok]))
+    k = int(best[1][0] > best[0][0])
+    return best[k][1], best[k][2], best[k][3], (best[k][0], best[1 - k][0])
+
+
 def _pad(a, n, fill=np.nan):
     out = np.full((n,) + a.shape[1:], fill, np.float64)
     out[:len(a)] = a
@@ -142,7 +198,8 @@ def _pad(a, n, fill=np.nan):
 def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int = 5, seed: int = 0, min_inliers: int = 30,
                 threshold_px: float = 1.5, max_reproj_px: float = 4.0, min_tri_angle_deg: float = 1.5,
                 init_angle_deg: float = 3.0, n_hypotheses: int = 512, local_ba_views: int = 6,
-                global_ba_growth: float = 1.1, log=None) -> Reconstruction:
+                global_ba_growth: float = 1.1, h_ratio: float = 0.9, min_parallax_px: float = 1.5,
+                log=None) -> Reconstruction:
     """Incremental SfM of images of one size with known (or guessed) intrinsics (module notes).
 
     Args:
@@ -153,7 +210,12 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
         ``Reconstruction.focal`` says how it was found.
       names: image names for reports. n_max: keypoint capacity per image. n_octaves: detector
         octaves. seed: RANSAC key.
-      min_inliers: view-graph edge threshold. threshold_px: Sampson inlier threshold (px).
+      min_inliers: view-graph edge threshold. threshold_px: Sampson inlier threshold (px) of the
+        essential matrix; the homography's threshold on the transfer distance is 1.25x it
+        (``sqrt(5.99 / 3.84)``, Hartley and Zisserman 2004, table 4.1: codimension 2 against 1).
+      h_ratio: a pair whose homography has >= ``h_ratio`` times the essential matrix's inliers
+        is flagged ``planar``, or ``pure_rotation`` when its H inliers have less than
+        ``min_parallax_px`` of parallax (module notes).
       max_reproj_px: PnP / triangulation / filtering reprojection threshold (px).
       min_tri_angle_deg: smallest ray angle of a triangulated point. init_angle_deg: median ray
         angle an initial pair needs. n_hypotheses: RANSAC samples (two-view and PnP).
@@ -214,6 +276,8 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
     # 3. geometric verification
     t0 = time.perf_counter()
 
+    h_threshold_px = float(np.sqrt(5.99 / 3.84)) * threshold_px  # H&Z table 4.1: codimension 2 vs 1
+
     def verify(K):
         graph, edges, rel = [], [], {}
         Kj = jnp.asarray(K)
@@ -231,20 +295,42 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
                                     n_hypotheses=n_hypotheses)
                 inl = np.asarray(res.inliers)[:len(a)]
                 e["inliers"] = int(inl.sum())
-                if e["inliers"] < min_inliers:
+                # the homography beside E: a plane or a pure rotation maps every correspondence by one
+                # H, so H explains (nearly) all of E's inliers (rule in the module notes)
+                hres = homography_ransac(jax.random.fold_in(key, 100_000 + p), jnp.asarray(_pad(uv_all[i][a], m_pad)),
+                                         jnp.asarray(_pad(uv_all[j][b], m_pad)), threshold_px=h_threshold_px,
+                                         n_hypotheses=max(64, n_hypotheses // 2))
+                hin = np.asarray(hres.inliers)[:len(a)]
+                e["h_inliers"] = int(hin.sum())
+                h_explains = e["h_inliers"] >= min_inliers and e["h_inliers"] >= h_ratio * max(e["inliers"], 1)
+                if h_explains:  # parallax of the H inliers (E's inliers of a degenerate E admit outliers)
+                    e["parallax_px"] = _parallax_px(uv_all[i][a], uv_all[j][b], hin, K, m_pad)
+                if e["inliers"] < min_inliers and not h_explains:
                     e["flag"] = "few_inliers"
-                elif bool(res.degenerate):
+                elif bool(res.degenerate) or (h_explains and e["parallax_px"] < min_parallax_px):
                     e["flag"] = "pure_rotation"
+                    inl = hin if h_explains else inl
+                elif h_explains:
+                    # a plane seen with parallax: the 8-point essential matrix of a plane is not unique,
+                    # so the pose comes from the homography (two physical solutions: module notes) and
+                    # the H inliers feed the tracks
+                    e["flag"] = "planar"
+                    inl = hin
+                    Rr, tr, X1, e["front"] = _planar_pose(np.asarray(hres.H), uv_all[i][a][hin], uv_all[j][b][hin], K)
+                    e["median_angle_deg"] = float(np.median(_angle_deg(X1, np.zeros(3), -Rr.T @ tr))) if len(X1) else 0.0
+                    e["pose"] = "homography"
+                    rel[(int(i), int(j))] = (Rr, tr)
                 elif bool(res.converged):
                     e["flag"] = "ok"
                     X1 = np.asarray(res.points)[:len(a)][inl]
                     Rr, tr = np.asarray(res.R), np.asarray(res.t)
                     X1 = X1[np.all(np.isfinite(X1), 1)]
                     e["median_angle_deg"] = float(np.median(_angle_deg(X1, np.zeros(3), -Rr.T @ tr))) if len(X1) else 0.0
+                    e["pose"] = "essential"
                     rel[(int(i), int(j))] = (Rr, tr)
                 else:
                     e["flag"] = "no_pose"
-                if e["flag"] in ("ok", "pure_rotation"):
+                if e["flag"] in ("ok", "planar", "pure_rotation"):
                     edges.append((int(i), int(j), a[inl], b[inl]))
             graph.append(e)
         return graph, edges, rel
@@ -252,7 +338,7 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
     graph, edges, rel = verify(K)
     if focal_info is not None:
         ok = [(uv_all[i][a], uv_all[j][b]) for (i, j, a, b), e in
-              zip(edges, [e for e in graph if e["flag"] in ("ok", "pure_rotation")]) if e["flag"] == "ok"]
+              zip(edges, [e for e in graph if e["flag"] in ("ok", "planar", "pure_rotation")]) if e["flag"] == "ok"]
         if ok:
             est = estimate_focal(ok, (w, h), principal_point=(K[0, 2], K[1, 2]))
             focal_info.update(est)
@@ -305,8 +391,10 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
     has_pt = np.zeros(max(T, 1), bool)
     obs_ok = np.zeros(O, bool)
     order: list[int] = []
-    cand = [e for e in graph if e["flag"] == "ok"]
-    good = [e for e in cand if e.get("median_angle_deg", 0) >= init_angle_deg]
+    # initial pair: general pairs first; a planar pair's pose only when no general pair has the angle
+    cand = [e for e in graph if e.get("pose")]
+    good = [e for e in cand if e["flag"] == "ok" and e["median_angle_deg"] >= init_angle_deg] or \
+        [e for e in cand if e["median_angle_deg"] >= init_angle_deg]
     if not cand:
         for i in range(n):
             reasons[i] = "no verified pair with parallax (view graph has no usable edge)"
@@ -499,6 +587,13 @@ def reconstruct(images, K=None, *, names=None, n_max: int = 4096, n_octaves: int
     rms = ba(50)
     rms = ba(50)
     for i in np.nonzero(~reg)[0]:
+        mine = [e for e in graph if int(i) in (e["i"], e["j"])]
+        if not any(e["flag"] in ("ok", "planar", "pure_rotation") for e in mine):
+            # no edge at all: say so, with its best pair (an unrelated photograph)
+            b = max(mine, key=lambda e: (max(e["inliers"], e.get("h_inliers", 0)), e["matches"]))
+            other = names[b["j"] if b["i"] == i else b["i"]]
+            reasons[int(i)] = (f"no verified pair with any image (best: {other}, {b['matches']} matches, "
+                               f"{max(b['inliers'], b.get('h_inliers', 0))} inliers; an edge needs >= {min_inliers})")
         reasons.setdefault(int(i), "never reached: no verified pair links it to the registered images")
     times["reconstruction"] = time.perf_counter() - t0
     times["bundle_adjustment"] = ba_time[0]

@@ -10,7 +10,22 @@ import numpy as np
 from .export import load_image_dir, write_colmap_text, write_ply_points, write_report
 from .reconstruct import Reconstruction, align_to_ground_truth, reconstruct
 
-__all__ = ["run_folder", "load_ground_truth", "evaluate"]
+__all__ = ["run_folder", "load_ground_truth", "evaluate", "check_one_size"]
+
+
+def check_one_size(names, imgs) -> None:
+    """Refuse photographs of more than one size, naming the files that differ from the most common size.
+
+    :func:`fsjax.sfm.reconstruct` models one camera (one ``K``, one feature program); a photograph of
+    another size is another camera or a resized copy, so ``fsjax sfm`` refuses it rather than
+    resizing it silently (a resize would make the given intrinsics wrong for it).
+    """
+    sizes = [im.shape[1::-1] for im in imgs]  # (width, height)
+    common = max(set(sizes), key=sizes.count)
+    odd = [f"'{nm}' ({w}x{h})" for nm, (w, h) in zip(names, sizes) if (w, h) != common]
+    if odd:
+        raise ValueError(f"fsjax sfm: every photograph must have one size (one camera): {sizes.count(common)} "
+                         f"are {common[0]}x{common[1]}, but not {', '.join(odd)}; resize or remove them")
 
 
 def load_ground_truth(path) -> dict:
@@ -44,7 +59,7 @@ def evaluate(rec: Reconstruction, gt: dict) -> dict:
 
 def run_folder(image_dir, out_dir, *, intrinsics=None, ground_truth=None, n_max: int = 4096, n_octaves: int = 5,
                seed: int = 0, log=print) -> Reconstruction:
-    """Reconstruct the photographs of ``image_dir``; write ``sparse/{cameras,images,points3D}.txt``
+    """Reconstruct the photographs of ``image_dir`` (all of one size: :func:`check_one_size`); write ``sparse/{cameras,images,points3D}.txt``
     (COLMAP text), ``points.ply`` (coloured sparse points), ``report.md``, ``cameras.png`` and ``source.json``
     (the photographs' folder, read by ``fsjax splat``) to ``out_dir``.
 
@@ -52,6 +67,7 @@ def run_folder(image_dir, out_dir, *, intrinsics=None, ground_truth=None, n_max:
     one focal length (``fsjax.sfm.focal``; how, stated in the report). ``ground_truth``: an optional ``cameras.json`` to score against.
     """
     names, imgs = load_image_dir(image_dir)
+    check_one_size(names, imgs)
     K = None
     if intrinsics is not None:
         fx, fy, cx, cy = (float(v) for v in intrinsics)

@@ -66,7 +66,7 @@ def test_results_are_jit_and_vmap_safe():
 def test_every_fit_result_has_the_base_fields():
     recs = _records()
     fits = {n: c for n, c in recs.items() if n not in NOT_FITS}
-    assert len(fits) == 14, sorted(fits)
+    assert len(fits) == 15, sorted(fits)
     for name, cls in fits.items():
         assert issubclass(cls, FitResult), name
         for field in ("converged", "reason", "iterations"):

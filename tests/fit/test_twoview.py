@@ -10,7 +10,11 @@ import pytest
 from fsjax.fit.calibrate import rodrigues
 from fsjax.fit.twoview import (
     decompose_essential,
+    decompose_homography,
+    fit_homography,
     fundamental_8point,
+    homography_ransac,
+    homography_transfer_px,
     normalized_points,
     relative_pose,
     sampson_distance,
@@ -105,3 +109,90 @@ def test_fail_closed():
     assert not bool(r2.converged) or bool(r2.degenerate)
     with pytest.raises(ValueError, match="relative_pose.*uv2"):
         relative_pose(jax.random.PRNGKey(0), np.zeros((10, 2)), np.zeros((9, 2)), K)
+
+
+def _plane_scene(seed, n=200, noise=0.5, outliers=0.2, t=(-1.0, 0.1, 0.2), rot=(0.05, -0.12, 0.03)):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform([-3, -2], [3, 2], (n, 2))
+    X = np.c_[xy, 8 + 0.3 * xy[:, 0] - 0.2 * xy[:, 1]]  # the plane z = 8 + 0.3 x - 0.2 y
+    R = np.asarray(rodrigues(jnp.asarray(rot)))
+    uv1 = _project(X) + rng.normal(0, noise, (n, 2))
+    uv2 = _project(X @ R.T + np.asarray(t)) + rng.normal(0, noise, (n, 2))
+    k = int(outliers * n)
+    uv2[:k] = rng.uniform([0, 0], [640, 480], (k, 2))
+    return uv1, uv2, R, np.asarray(t, float), X, k
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_homography_ransac_tells_planes_from_general_scenes(seed):
+    # a plane: H holds the inliers E holds (thresholds matched as in H&Z table 4.1: 1.25x), rejects
+    # the outliers and maps the noise-free points within the noise; a general scene: H holds few
+    uv1, uv2, R, t, X, k = _plane_scene(seed)
+    h = homography_ransac(jax.random.PRNGKey(seed), uv1, uv2, threshold_px=1.25 * 1.5)
+    e = relative_pose(jax.random.PRNGKey(seed), uv1, uv2, K, threshold_px=1.5)
+    inl = np.asarray(h.inliers)
+    n = np.array([-0.3, 0.2, 1.0]) / 8.0  # n . X = 1 for the plane above
+    Htrue = K @ (R + np.outer(t, n)) @ np.linalg.inv(K)
+    d_true = np.asarray(homography_transfer_px(jnp.asarray(h.H), _project(X), _project(X @ R.T + t)))
+    print(f"plane seed {seed}: H inliers {int(h.n_inliers)} (outliers kept {inl[:k].sum()}/{k}), E inliers "
+          f"{int(e.n_inliers)} ('{e.message}'); transfer RMS {float(h.rms_px):.3f} px; noise-free points "
+          f"off the fitted H by median {np.median(d_true[k:]):.3f} px")
+    assert bool(h.converged) and h.message == "ok" and inl[:k].sum() == 0 and inl[k:].mean() > 0.95
+    assert int(h.n_inliers) >= 0.9 * int(e.n_inliers)
+    assert np.median(d_true[k:]) < 0.2
+    Hn = np.asarray(h.H) / np.asarray(h.H)[2, 2]
+    assert np.abs(Hn - Htrue / Htrue[2, 2]).max() < 0.05 * np.abs(Htrue / Htrue[2, 2]).max()
+    # the true pose is one of the homography's two solutions facing camera 1; its twin is far from it
+    Rs, ts, ns = (np.asarray(v) for v in decompose_homography(h.H, K))
+    err = [_rot_err_deg(Rs[i], R) for i in range(2)]
+    b = int(np.argmin(err))
+    tdir = np.degrees(np.arccos(np.clip(ts[b] @ t / np.linalg.norm(ts[b]) / np.linalg.norm(t), -1, 1)))
+    # (unrefined: 0.5 px noise on 160 points of a plane 8 baselines away gives ~0.4 deg, ~3 deg in t)
+    assert err[b] < 1.0 and tdir < 5.0 and np.abs(ns[b] - n / np.linalg.norm(n)).max() < 0.05, (err, tdir, ns[b])
+    assert err[1 - b] > 3 * err[b] + 2.0, err
+    # null: a general scene of the same cameras
+    uv1g, uv2g, *_ = _scene(seed, noise=0.5)
+    hg = homography_ransac(jax.random.PRNGKey(seed), uv1g, uv2g, threshold_px=1.25 * 1.5)
+    eg = relative_pose(jax.random.PRNGKey(seed), uv1g, uv2g, K, threshold_px=1.5)
+    print(f"  general scene: H inliers {int(hg.n_inliers)}, E inliers {int(eg.n_inliers)}")
+    assert int(hg.n_inliers) < 0.3 * int(eg.n_inliers)
+
+
+def test_homography_building_blocks_and_fail_closed():
+    rng = np.random.default_rng(3)
+    H0 = np.array([[0.9, 0.1, 30.0], [-0.05, 1.1, -12.0], [3e-4, -2e-4, 1.0]])
+    uv1 = rng.uniform(0, 600, (30, 2))
+    p = np.c_[uv1, np.ones(30)] @ H0.T
+    uv2 = p[:, :2] / p[:, 2:]
+    H = np.asarray(fit_homography(uv1, uv2))
+    assert np.abs(H / H[2, 2] - H0).max() < 1e-9
+    # transfer distance: the same in either image order; d px off in one image -> about d / sqrt 2
+    d = np.asarray(homography_transfer_px(H0, uv1, uv2))
+    assert d.max() < 1e-9
+    off = uv2 + [2.0, 0.0]
+    d12 = np.asarray(homography_transfer_px(H0, uv1, off))
+    d21 = np.asarray(homography_transfer_px(np.linalg.inv(H0), off, uv1))
+    np.testing.assert_allclose(d12, d21, rtol=1e-9)
+    assert 1.3 < np.median(d12) < 1.9  # 2 / sqrt 2, times the local scale of H^-1
+    # padding rows (NaN) are never inliers; too few points and bad shapes fail closed
+    pad = np.r_[uv1, np.full((10, 2), np.nan)]
+    r = homography_ransac(jax.random.PRNGKey(0), pad, np.r_[uv2, np.full((10, 2), np.nan)])
+    assert bool(r.converged) and int(r.n_inliers) == 30 and not np.asarray(r.inliers)[30:].any()
+    r3 = homography_ransac(jax.random.PRNGKey(0), uv1[:3], uv2[:3])
+    assert not bool(r3.converged) and "too few" in r3.message and np.all(np.isnan(np.asarray(r3.H)))
+    with pytest.raises(ValueError, match="homography_ransac.*uv2"):
+        homography_ransac(jax.random.PRNGKey(0), np.zeros((10, 2)), np.zeros((9, 2)))
+    with pytest.raises(ValueError, match="homography_ransac.*threshold_px"):
+        homography_ransac(jax.random.PRNGKey(0), uv1, uv2, threshold_px=0.0)
+
+
+def test_homography_ransac_float32():
+    # float32 data (the library's default) with x64 on: same inliers as float64 within a few, H as good
+    uv1, uv2, R, t, X, k = _plane_scene(0)
+    r64 = homography_ransac(jax.random.PRNGKey(0), uv1, uv2, threshold_px=1.875)
+    r32 = homography_ransac(jax.random.PRNGKey(0), jnp.asarray(uv1, jnp.float32), jnp.asarray(uv2, jnp.float32),
+                            threshold_px=1.875)
+    assert r32.H.dtype == jnp.float32 and bool(r32.converged)
+    assert abs(int(r32.n_inliers) - int(r64.n_inliers)) <= 3 and not np.asarray(r32.inliers)[:k].any()
+    d = np.asarray(homography_transfer_px(np.asarray(r32.H, float), _project(X), _project(X @ R.T + t)))
+    assert np.median(d[k:]) < 0.2
