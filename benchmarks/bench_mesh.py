@@ -389,7 +389,10 @@ def update_docs(rows: list[dict], cmd: str) -> None:
                 end = next(i for i in range(at + 1, len(lines)) if lines[i].startswith("## "))
         note = (f"Rows re-measured by `{cmd}` on {datetime.date.today().isoformat()}: decimation to "
                 f"{', '.join(str(r['ratio']) for r in dec)}.")
-        lines[at + 1:at + 1] = ["", note]
+        if at + 2 < len(lines) and lines[at + 2].startswith("Rows re-measured by"):
+            lines[at + 2] = note     # the previous run's note is replaced, not stacked
+        else:
+            lines[at + 1:at + 1] = ["", note]
     page.write_text("\n".join(lines) + "\n")
 
 

@@ -83,7 +83,14 @@ NOTES = [
     "  rounds are unchanged (4 / 5 / 6 at",
     "  64 / 128 / 256^3; runs along x as the starting pointers, and one or three pointer jumps per",
     "  round instead of two, were measured: no fewer rounds, or slower; 26 taps unrolled into one",
-    "  fusion: slower). At 256^3 a call is roughly: writing the 64 MB int32 output ~35 ms (SciPy",
+    "  fusion over the whole volume: slower). Then (vol16, second stop) the 26 taps run per z-slab",
+    "  of 8 block layers, all of a slab's taps in one fused pass (the slab stays in the cache),",
+    "  and a root block's position inside its block comes from arithmetic instead of two gathers",
+    "  from an 8-entry table (`python benchmarks/profile_label3d.py --old 34a80f2 --sizes",
+    "  64,128,256`, `nice -n 5`, load 8-10): 256^3 610 -> 419 ms (SciPy 797), batch of 4 2804 ->",
+    "  2057 ms (SciPy 2910); 128^3 50.2 -> 47.4 ms (SciPy 49.3), batch 339 -> 314 ms (SciPy 213);",
+    "  64^3 batch 29.7 -> 17.0 ms (SciPy 18.7); identical labels; compile 1.05 -> 1.15 s CPU. Before",
+    "  it, at 256^3 a call was roughly: writing the 64 MB int32 output ~35 ms (SciPy",
     "  writes the same), adjacency bits ~11 ms, 6 rounds of 26 masked taps plus 3 gathers and a",
     "  scatter (these ~5 ms a round), at load 0.5. A batch is labelled as one volume (members stacked along",
     "  z with a background block layer between them). fsjax runs XLA's two threads and suffers more",
@@ -217,7 +224,10 @@ def update_docs(rows: list[dict], cmd: str) -> None:
     note = (f"Rows re-measured by `{cmd}` on {datetime.date.today().isoformat()} (load average at the end: "
             f"{la}): {done}; the other rows are from the run above.")
     at = next(i for i, ln in enumerate(lines) if ln.startswith("| task |"))
-    lines[at:at] = [note, ""]
+    if at >= 2 and lines[at - 2].startswith("Rows re-measured by"):
+        lines[at - 2] = note     # the previous partial run's note is replaced, not stacked
+    else:
+        lines[at:at] = [note, ""]
     notes = next((i for i, ln in enumerate(lines) if ln == NOTES[0]), len(lines))
     lines[notes:] = NOTES                              # the prose follows the code, not the old run
     page.write_text("\n".join(lines) + "\n")

@@ -35,7 +35,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--samples", type=int, default=200_000)
     ap.add_argument("--f64", action="store_true")
-    ap.add_argument("--stages", type=int, default=0, help="override the current version's stage count")
+    ap.add_argument("--stage-divs", default=None,
+                    help="override the current version's later stage capacities (faces / d), e.g. '2,4' or ''")
     a = ap.parse_args()
 
     import jax
@@ -49,8 +50,8 @@ def main() -> None:
     from fsjax import data as D
     from fsjax.ops.mesh import _decimate as new
 
-    if a.stages:
-        new._STAGES = a.stages
+    if a.stage_divs is not None:
+        new._STAGE_DIVS = tuple(int(d) for d in a.stage_divs.split(",") if d)
     old = module_at(a.old, "fsjax/ops/mesh/_decimate.py", "fsjax.ops.mesh._decimate_old")
     dt = jnp.float64 if a.f64 else jnp.float32
     v, f = D.mesh_arrays("fandisk")

@@ -38,13 +38,18 @@ Conventions:
 * Memory ``O(F)``. The edges are found by one sort before the first round; their slots then
   persist (a collapse renames its endpoints and merges the edge to each apex into its twin), so
   a round sorts nothing (the last one sorts its collapses by cost to land on the target).
-* **Compaction**: the rounds run in three stages of array capacity (``F``, ``F / 2``,
-  ``F / 4`` faces and three edge slots per face): when the valid faces fit the next capacity,
-  they and the edge slots they use move to the front of smaller arrays, in their order, so
-  priorities and ties compare as before and the result is the same as without compaction
-  (checked bit for bit on fandisk); the cost of a round then follows the faces left. Each
-  stage is its own loop body: compile time is about three rounds' worth (~11 s CPU on
-  fandisk against ~4 s without compaction).
+* **Compaction**: the rounds run in two stages of array capacity (``F`` faces, then ``F / 3``;
+  three edge slots per face): when the valid faces fit the smaller capacity, they and the edge
+  slots they use move to the front of smaller arrays, in their order, so priorities and ties
+  compare as before; the rounds after it cost about a third. Each stage is its own loop body,
+  and a body is most of the compile time (fandisk float32, one process, load ~11: one stage
+  4.2 s CPU and 510 ms a call, two 7.4 s and 284 ms, three (``F / 2``, ``F / 4``) 11.3 s and
+  276 ms; ``python benchmarks/profile_decimate.py --old HEAD --stage-divs ...``).
+* A round works on coordinate and quadric columns (structure of arrays), elementwise: the
+  3x3 solve, the costs and the fold test as ``(m,)`` arrays instead of reductions over trailing
+  axes of 3 and 4 (slow kernels on a CPU). That changes the last bit of some costs, so results
+  are not bit-identical to the ``(m, 3)`` form; quality is (fandisk to 10 %: Hausdorff 0.00333
+  vs 0.00330).
 """
 
 from __future__ import annotations
@@ -71,7 +76,7 @@ _REFS = [
 ]
 _INT_MAX = jnp.iinfo(jnp.int32).max
 _LUBY_PASSES = 6
-_STAGES = 3  # face capacities nf, nf / 2, nf / 4 (arrays compacted between stages)
+_STAGE_DIVS = (3,)  # later stages' face capacities: nf divided by these (arrays compacted between stages)
 _MIN_CAP = 64
 _N_BUCKETS = 256
 _NEED_SPAN = 4  # buckets (factors of sqrt 2) the eligible costs may reach past the cheapest eighth's
@@ -84,34 +89,41 @@ def _plane_quadric(n, d):
     return p[..., i] * p[..., j]
 
 
-# packed slots of the upper triangle of a symmetric 4x4 matrix, in jnp.triu_indices(4) order
-_SLOT = ((0, 1, 2, 3), (1, 4, 5, 6), (2, 5, 7, 8), (3, 6, 8, 9))
+def _cols(p):
+    """The x, y, z columns of ``(..., 3)`` points: the round works on columns (structure of
+    arrays), elementwise; reductions over a trailing axis of 3 are slow kernels on a CPU."""
+    return p[..., 0], p[..., 1], p[..., 2]
 
 
-def _block(q):
-    """The 3x3 block ``A`` and the vector ``b`` of a packed quadric ``[[A, b], [b^T, c]]``."""
-    a = jnp.stack([jnp.stack([q[..., _SLOT[i][j]] for j in range(3)], -1) for i in range(3)], -2)
-    return a, jnp.stack([q[..., _SLOT[i][3]] for i in range(3)], -1)
+def _sub(u, v):
+    return u[0] - v[0], u[1] - v[1], u[2] - v[2]
+
+
+def _dot(u, v):
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _cross(u, v):
+    return u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]
 
 
 def _cost(q, v):
-    """``h^T Q h`` with ``h = (v, 1)``, from the packed quadric, elementwise (a batched 4x4
-    product of tiny matrices is far slower on a CPU)."""
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    c = (q[..., 0] * x * x + q[..., 4] * y * y + q[..., 7] * z * z + q[..., 9]
-         + 2.0 * (q[..., 1] * x * y + q[..., 2] * x * z + q[..., 5] * y * z
-                  + q[..., 3] * x + q[..., 6] * y + q[..., 8] * z))
+    """``h^T Q h`` with ``h = (v, 1)``, from the columns ``q`` of packed quadrics (slots in
+    ``jnp.triu_indices(4)`` order) and the columns ``v`` of points, elementwise."""
+    x, y, z = v
+    c = (q[0] * x * x + q[4] * y * y + q[7] * z * z + q[9]
+         + 2.0 * (q[1] * x * y + q[2] * x * z + q[5] * y * z + q[3] * x + q[6] * y + q[8] * z))
     return jnp.maximum(c, 0.0)
 
 
-def _solve3(a, b):
-    """Solve ``a x = b`` for 3x3 ``a`` by Cramer's rule; returns ``(x, det)``."""
-    c0, c1, c2 = a[..., :, 0], a[..., :, 1], a[..., :, 2]
-    det = jnp.sum(c0 * jnp.cross(c1, c2), -1)
+def _minimiser(q):
+    """The point minimising a packed quadric ``[[A, b], [b^T, c]]``: ``A x = -b`` by Cramer's
+    rule (``A`` symmetric, its columns from the packed slots); returns ``(x columns, det A)``."""
+    c0, c1, c2, r = (q[0], q[1], q[2]), (q[1], q[4], q[5]), (q[2], q[5], q[7]), (-q[3], -q[6], -q[8])
+    c12 = _cross(c1, c2)
+    det = _dot(c0, c12)
     safe = jnp.where(det == 0, 1.0, det)
-    x = jnp.stack([jnp.sum(b * jnp.cross(c1, c2), -1), jnp.sum(c0 * jnp.cross(b, c2), -1),
-                   jnp.sum(c0 * jnp.cross(c1, b), -1)], -1) / safe[..., None]
-    return x, det
+    return (_dot(r, c12) / safe, _dot(c0, _cross(r, c2)) / safe, _dot(c0, _cross(c1, r)) / safe), det
 
 
 def _edges(faces, fvalid):
@@ -172,6 +184,13 @@ def _initial_quadrics(pos, faces, fvalid, boundary_weight):
     return q, on_boundary
 
 
+def _small_cumsum(x):
+    """Running sum of a short 1-D integer array as one windowed sum (n^2 adds, one kernel; the
+    parallel scan of ``jnp.cumsum`` compiles to about nine)."""
+    n = x.shape[0]
+    return lax.reduce_window(x, jnp.zeros((), x.dtype), lax.add, (n,), (1,), [(n - 1, 0)])
+
+
 def _spread(mark, a, b, is_edge):
     """Vertices marked, or one edge away from a marked vertex."""
     return mark.at[a].max(is_edge & mark[b]).at[b].max(is_edge & mark[a])
@@ -220,16 +239,17 @@ def _common_neighbours(a, b, is_edge, partner, owner, nv, m, levels=4):
     has = jnp.concatenate([is_edge, is_edge]) & (partner[u] >= 0) & (w != partner[u])
     e = jnp.where(has, owner[u], m)
     wd = jnp.where(has, w, nv)
-    prev = jnp.full((nv + 1,), -1, jnp.int32)
-    common = jnp.zeros((m + 1,), jnp.int32)
-    covered = jnp.zeros(e.shape, bool)
-    for _ in range(levels):
+
+    def level(_, carry):
+        prev, common, covered = carry
         nxt = jnp.full((nv + 1,), m, jnp.int32).at[wd].min(jnp.where(has & (e > prev[wd]), e, m))
         hit = has & (e == nxt[wd])
         c = jnp.zeros((nv + 1,), jnp.int32).at[wd].add(hit.astype(jnp.int32))
-        common = common.at[jnp.where(c == 2, nxt, m)].add(1)
-        covered = covered | hit
-        prev = nxt
+        return nxt, common.at[jnp.where(c == 2, nxt, m)].add(1), covered | hit
+
+    # a loop, not unrolled: one level's kernels compile once
+    _, common, covered = lax.fori_loop(0, levels, level, (jnp.full((nv + 1,), -1, jnp.int32),
+                                                         jnp.zeros((m + 1,), jnp.int32), jnp.zeros(e.shape, bool)))
     doubt = jnp.zeros((m + 1,), bool).at[jnp.where(has & ~covered, e, m)].set(True)[:m]
     return common[:m], doubt
 
@@ -243,16 +263,18 @@ def _round(state, target, nbits):
     is_edge = count > 0
     a, b = jnp.where(is_edge, e_lo, 0), jnp.where(is_edge, e_hi, 0)
     qa = q[a] + q[b]
-    qa3, qb3 = _block(qa)
-    pa, pb = pos[a], pos[b]
-    mid = 0.5 * (pa + pb)
-    xs, det = _solve3(qa3, -qb3)
-    scale = (qa[:, 0] + qa[:, 4] + qa[:, 7]) / 3
-    elen = jnp.sqrt(jnp.sum((pb - pa) ** 2, -1))
-    good = (jnp.abs(det) > 1e-5 * jnp.abs(scale) ** 3) & jnp.all(jnp.isfinite(xs), -1) \
-        & (jnp.sqrt(jnp.sum((xs - mid) ** 2, -1)) <= elen)
-    cands = jnp.stack([jnp.where(good[:, None], xs, mid), pa, pb, mid], 1)  # (m, 4, 3)
-    costs = _cost(qa[:, None], cands)
+    qc = [qa[:, k] for k in range(10)]
+    pa, pb = _cols(pos[a]), _cols(pos[b])
+    mid = tuple(0.5 * (u + v) for u, v in zip(pa, pb))
+    xs, det = _minimiser(qc)
+    scale = (qc[0] + qc[4] + qc[7]) / 3
+    elen = jnp.sqrt(_dot(_sub(pb, pa), _sub(pb, pa)))
+    d = _sub(xs, mid)
+    good = (jnp.abs(det) > 1e-5 * jnp.abs(scale) ** 3) & jnp.isfinite(xs[0]) & jnp.isfinite(xs[1]) \
+        & jnp.isfinite(xs[2]) & (jnp.sqrt(_dot(d, d)) <= elen)
+    cands = (tuple(jnp.where(good, x, c) for x, c in zip(xs, mid)), pa, pb, mid)
+    costs = jnp.stack([_cost(qc, c) for c in cands], 1)  # (m, 4)
+    ctab = jnp.stack([x for c in cands for x in c], 1)  # (m, 12): candidate k at columns 3k..3k+2
     cost = jnp.min(costs, axis=1)
     interior = count == 2
     legal = is_edge & (count <= 2) & ~(interior & on_bnd[a] & on_bnd[b])
@@ -274,7 +296,7 @@ def _round(state, target, nbits):
     n_eighth = jnp.maximum(n_legal // 8, 1)
     n_elig = jnp.maximum(jnp.minimum(jnp.maximum(n_eighth, jnp.sum(fvalid) - target), n_legal), 1)
     hist = jax.ops.segment_sum(legal.astype(jnp.int32), bucket, num_segments=_N_BUCKETS)
-    cum = jnp.cumsum(hist)
+    cum = _small_cumsum(hist)
     tb = jnp.argmax(cum >= n_elig)
     # ... but never costs above _NEED_SPAN buckets past the eighth's (the whole bucket then)
     tb_cap = jnp.argmax(cum >= n_eighth) + _NEED_SPAN
@@ -284,7 +306,7 @@ def _round(state, target, nbits):
     # hash's top 10 bits) make up the count
     hb = (h >> 22).astype(jnp.int32)
     in_tb = legal & (bucket == tb)
-    cum_h = jnp.cumsum(jax.ops.segment_sum(in_tb.astype(jnp.int32), hb, num_segments=1024))
+    cum_h = _small_cumsum(jax.ops.segment_sum(in_tb.astype(jnp.int32), hb, num_segments=1024))
     th = jnp.argmax(cum_h >= n_elig - (cum[tb] - hist[tb]))
     eligible = legal & ((bucket < tb) | (in_tb & (hb <= th)))
     # among them a random priority (the hash, as in Luby's independent sets; unique: its low
@@ -311,15 +333,17 @@ def _round(state, target, nbits):
     mv_slot = jnp.argmax(moving, axis=1)
     mv_any = jnp.any(moving, axis=1) & ~both
     e_of_face = jnp.where(mv_any, owner[jnp.take_along_axis(fv, mv_slot[:, None], 1)[:, 0]], m)
-    newp = cands[jnp.minimum(e_of_face, m - 1)]  # (nf, 4, 3)
-    t_old = pos[fv]
-    at_slot = (jnp.arange(3)[None, :] == mv_slot[:, None])[:, None, :, None]
-    t_new = jnp.where(at_slot, newp[:, :, None, :], t_old[:, None])  # (nf, 4, 3, 3)
-    n_old = jnp.cross(t_old[:, 1] - t_old[:, 0], t_old[:, 2] - t_old[:, 0])[:, None]
-    n_new = jnp.cross(t_new[..., 1, :] - t_new[..., 0, :], t_new[..., 2, :] - t_new[..., 0, :])
-    cosang = jnp.sum(n_old * n_new, -1)
-    n_old2 = jnp.sum(n_old * n_old, -1)  # a face that is already degenerate cannot fold
-    n_new2 = jnp.sum(n_new * n_new, -1)
+    newp = ctab[jnp.minimum(e_of_face, m - 1)]  # (nf, 12)
+    t_old = [_cols(pos[fv[:, i]]) for i in range(3)]
+    n_old = _cross(_sub(t_old[1], t_old[0]), _sub(t_old[2], t_old[0]))
+    n_old2 = _dot(n_old, n_old)  # a face that is already degenerate cannot fold
+    cosang, n_new2 = [], []
+    for k in range(4):
+        t_new = [tuple(jnp.where(mv_slot == i, newp[:, 3 * k + c], t_old[i][c]) for c in range(3)) for i in range(3)]
+        n_new = _cross(_sub(t_new[1], t_new[0]), _sub(t_new[2], t_new[0]))
+        cosang.append(_dot(n_old, n_new))
+        n_new2.append(_dot(n_new, n_new))
+    cosang, n_new2, n_old2 = jnp.stack(cosang, 1), jnp.stack(n_new2, 1), n_old2[:, None]
     # ... nor lose its area to rounding (a merged vertex landing on another vertex, or on the
     # line through two, leaves a normal of rounding errors and of either sign)
     eps = jnp.finfo(pos.dtype).eps
@@ -327,7 +351,7 @@ def _round(state, target, nbits):
     folds = jnp.zeros((m + 1, 4), bool).at[e_of_face].max(flip)[:m]
     costs_ok = jnp.where(folds, jnp.inf, costs)
     best = jnp.argmin(costs_ok, axis=1)
-    target_pos = jnp.take_along_axis(cands, best[:, None, None], 1)[:, 0]
+    target_pos = jnp.stack([jnp.take_along_axis(ctab, (3 * best + c)[:, None], 1)[:, 0] for c in range(3)], -1)
     # a candidate that folds nothing but costs more than the edge was ranked by is a worse
     # collapse than its turn in the order allows: the edge is refused instead
     veto = jnp.all(folds, axis=1) | (jnp.min(costs_ok, axis=1) > 2.0 * cost + 1e-6 * jnp.abs(scale) * elen * elen)
@@ -417,7 +441,7 @@ def _decimate_core(pos, faces, fvalid, vvalid, target, boundary_weight, *, max_r
 
     nf = faces.shape[0]
     nbits = max(int(3 * nf).bit_length(), 1)  # the priorities' slot bits, fixed for every stage
-    caps = [nf] + [c for c in (-(-nf // 2 ** k) for k in range(1, _STAGES)) if c >= _MIN_CAP]
+    caps = [nf] + [c for c in (-(-nf // d) for d in _STAGE_DIVS) if c >= _MIN_CAP]
     state = (pos, q, faces, fvalid, vvalid, on_bnd, jnp.zeros(e_lo.shape, bool), e_lo, e_hi, he_slot.reshape(-1, 3),
              jnp.asarray(0, jnp.int32), jnp.asarray(1, jnp.int32))
     fid = jnp.arange(nf, dtype=jnp.int32)

@@ -59,6 +59,7 @@ _PROPS_REFS = _REFS + [
 ]
 _INT_MAX = jnp.iinfo(jnp.int32).max
 _CONNECTIVITIES = (6, 18, 26)
+_SLAB = 8  # block layers per z-slab of the neighbour taps
 
 
 def neighbour_offsets(connectivity: int) -> list[tuple[int, int, int]]:
@@ -184,7 +185,6 @@ def _block_union_find(fg, connectivity: int):
     for t, (o, own, nb) in enumerate(terms):
         there = wp[o[0] + 1:o[0] + 1 + d, o[1] + 1:o[1] + 1 + h, o[2] + 1:o[2] + 1 + w]
         bits = bits | ((((word >> set_bit[own]) & (there >> set_bit[nb])) & 1) << t)
-    offs = jnp.asarray([o for o, _, _ in terms], jnp.int32) + 1
     kz, ky, kx = jnp.meshgrid(jnp.arange(d, dtype=jnp.int32) * bs[0], jnp.arange(h, dtype=jnp.int32) * bs[1],
                               jnp.arange(w, dtype=jnp.int32) * bs[2], indexing="ij")
     k0 = (kz * Hp + ky) * Wp + kx
@@ -200,19 +200,29 @@ def _block_union_find(fg, connectivity: int):
         x = r - y * Wp
         return ((z // bs[0]) * h + y // bs[1]) * w + x // bs[2]
 
+    S = _SLAB
+    ns = -(-d // S)
+    bits_s = jnp.pad(bits, ((0, ns * S - d), (0, 0), (0, 0)))
+    term_offs = [o for o, _, _ in terms]
+
     def neighbour_min(g):
-        p = jnp.pad(g, 1, constant_values=_INT_MAX)
+        # z-slabs of S block layers, all T masked taps of a slab in one fused pass: the slab and
+        # its two neighbour layers stay in the cache. Taps over the whole volume, two per loop
+        # step, streamed it T / 2 times per round: 263-274 -> 227-229 ms CPU per call at 256^3
+        # (benchmarks/profile_label3d.py; slabs of 4, 8, 16 and 32 layers all alike).
+        p = jnp.pad(g, ((1, ns * S - d + 1), (1, 1), (1, 1)), constant_values=_INT_MAX)
 
-        def tap(k, out):
-            nb = lax.dynamic_slice(p, (offs[k, 0], offs[k, 1], offs[k, 2]), (d, h, w))
-            return jnp.minimum(out, jnp.where((bits >> k.astype(jnp.uint32)) & 1, nb, _INT_MAX))
+        def slab(k, out):
+            blk = lax.dynamic_slice(p, (k * S, 0, 0), (S + 2, h + 2, w + 2))
+            bt = lax.dynamic_slice(bits_s, (k * S, 0, 0), (S, h, w))
+            o = blk[1:S + 1, 1:h + 1, 1:w + 1]
+            for t, (oz, oy, ox) in enumerate(term_offs):
+                nb = blk[1 + oz:1 + oz + S, 1 + oy:1 + oy + h, 1 + ox:1 + ox + w]
+                o = jnp.minimum(o, jnp.where((bt >> t) & 1, nb, _INT_MAX))
+            return lax.dynamic_update_slice(out, o, (k * S, 0, 0))
 
-        # two taps per loop step: one fused pass reads and writes the running minimum half as
-        # often (one tap per step measured 10-30 % slower per call; all 26 in one step slower)
-        out = lax.fori_loop(0, T // 2, lambda i, o: tap(2 * i + 1, tap(2 * i, o)), g)
-        if T % 2:
-            out = tap(jnp.int32(T - 1), out)
-        return out.reshape(-1)
+        out = lax.fori_loop(0, ns, slab, jnp.zeros((ns * S, h, w), jnp.int32))
+        return out[:d].reshape(-1)
 
     def jump(f):
         return f.at[f].get(mode="promise_in_bounds")
@@ -282,8 +292,12 @@ def _label_stacked(m, b: int, connectivity: int):
     # raster order of the roots: one root mark per cell, packed 32 cells to a uint32 word, a
     # running popcount over the words, and a root's rank is its word's running count plus the
     # marks below it in the word (a cumulative sum over the voxels cost ~4x more, measured).
-    pz = jnp.asarray([q[0] for q in pos_of(connectivity)], jnp.int32)[first]
-    py = jnp.asarray([q[1] for q in pos_of(connectivity)], jnp.int32)[first]
+    # the position's z and y inside the block, by arithmetic on its raster index (a lookup in a
+    # table of len(sub) entries was two gathers over all blocks: 13 % of the kernel time at 256^3
+    # in a profile trace); background blocks (first == len(sub)) read the last entry, as the
+    # clamped lookup did
+    fi = jnp.minimum(first, len(sub) - 1)
+    pz, py = fi // (bs[1] * bs[2]), (fi // bs[2]) % bs[1]
     root3 = is_root.reshape(d, h, w)
     cells = jnp.stack([root3 & (pz == a) & (py == c) for a in range(bs[0]) for c in range(bs[1])])
     cells = cells.reshape(bs[0], bs[1], d, h, w).transpose(2, 0, 3, 1, 4).reshape(-1)
