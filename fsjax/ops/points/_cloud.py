@@ -178,10 +178,16 @@ def estimate_normals(pts: Points, /, *, k: int = 16, viewpoint: tuple[float, flo
     op = "estimate_normals"
     k = check_static_int(op, "k", k, lo=3, hi=32)
     vp = _check_viewpoint(op, viewpoint)
+    return _replace(pts, normals=_estimate_normals_core(pts, k, jnp.asarray(vp, pts.xyz.dtype)))
+
+
+# One compiled program per cloud shape and k (op by op: ~40 small programs per shape).
+@functools.partial(jax.jit, static_argnames=("k",))
+def _estimate_normals_core(pts: Points, k: int, vp):
     valid = _valid_mask(pts)
     xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
     idx, _ = knn(xyz, xyz, k, ref_valid=valid)
-    return _replace(pts, normals=normals_from_neighbours(xyz, valid, idx, jnp.asarray(vp, xyz.dtype)))
+    return normals_from_neighbours(xyz, valid, idx, vp)
 
 
 NORMALS_BLOCK = 4096  # query rows per step of normals_from_neighbours' lax.map
