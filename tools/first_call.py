@@ -11,7 +11,8 @@ running it in each, alternating (docs/compile_times.md, "Where the suite's time 
 
 NAME: ``curvature`` (2,000 points on a sphere, k 16), ``voxel`` (the fandisk scan of
 ``synth.cad_scan_pair``, 21,774 points), ``index`` (``build_index`` + ``query_knn``: 5,000 refs,
-3,000 queries, k 8), ``decode`` (``synth.decode_depth`` on the structured-light still life).
+3,000 queries, k 8), ``normals`` (``estimate_normals``: 3,000 points on a sphere, k 16), ``decode``
+(``synth.decode_depth`` on the structured-light still life).
 """
 
 from __future__ import annotations
@@ -46,6 +47,10 @@ def _call(name):
         pair = fsjax.synth.cad_scan_pair("fandisk", angle_deg=50.0, seed=0)
         p, vx = fsjax.Points(jnp.asarray(pair["scan"])), 0.02 * pair["diag"]
         return lambda: fsjax.ops.voxel_downsample(p, voxel=vx, capacity=4096)
+    if name == "normals":
+        sp = rng.normal(size=(3000, 3))
+        p = fsjax.Points(jnp.asarray(sp / np.linalg.norm(sp, axis=1, keepdims=True)))
+        return lambda: fsjax.ops.estimate_normals(p, k=16)
     if name == "index":
         ref, q = jnp.asarray(rng.uniform(size=(5000, 3))), jnp.asarray(rng.uniform(size=(3000, 3)))
         return lambda: fsjax.ops.query_knn(fsjax.ops.build_index(ref, k=8), q, 8)
@@ -56,7 +61,7 @@ def _call(name):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("name", choices=("curvature", "voxel", "index", "decode"))
+    ap.add_argument("name", choices=("curvature", "voxel", "index", "normals", "decode"))
     name = ap.parse_args().name
     jax.config.update("jax_enable_x64", True)
     jax.monitoring.register_event_duration_secs_listener(_listen)
