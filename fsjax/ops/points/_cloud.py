@@ -364,6 +364,12 @@ def statistical_outlier_removal(pts: Points, /, *, k: int = 16, std_ratio: float
     op = "statistical_outlier_removal"
     k = check_static_int(op, "k", k, lo=1, hi=31)
     check_range(op, "std_ratio", std_ratio, 0.0, None)
+    return _replace(pts, valid=pts.valid & _sor_keep(pts, k, std_ratio))
+
+
+# One compiled program per cloud shape and k (op by op: ~25 small programs per shape).
+@functools.partial(jax.jit, static_argnames=("k",))
+def _sor_keep(pts: Points, k: int, std_ratio):
     valid = _valid_mask(pts)
     xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
     dt = xyz.dtype
@@ -378,8 +384,7 @@ def statistical_outlier_removal(pts: Points, /, *, k: int = 16, std_ratio: float
     mu = jnp.sum(jnp.where(use, md, 0.0)) / jnp.maximum(nu, 1.0)
     var = jnp.sum(jnp.where(use, (md - mu) ** 2, 0.0)) / jnp.maximum(nu - 1.0, 1.0)
     thr = mu + jnp.asarray(std_ratio, dt) * jnp.sqrt(var)
-    keep = use & (md <= thr)
-    return _replace(pts, valid=pts.valid & keep)
+    return use & (md <= thr)
 
 
 @register(family="points", takes=Points, gives=Points, knobs={"radius": LogKnob(0.02, 1.0)},
