@@ -178,10 +178,16 @@ def estimate_normals(pts: Points, /, *, k: int = 16, viewpoint: tuple[float, flo
     op = "estimate_normals"
     k = check_static_int(op, "k", k, lo=3, hi=32)
     vp = _check_viewpoint(op, viewpoint)
+    return _replace(pts, normals=_estimate_normals_core(pts, k, jnp.asarray(vp, pts.xyz.dtype)))
+
+
+# One compiled program per cloud shape and k (op by op: ~40 small programs per shape).
+@functools.partial(jax.jit, static_argnames=("k",))
+def _estimate_normals_core(pts: Points, k: int, vp):
     valid = _valid_mask(pts)
     xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
     idx, _ = knn(xyz, xyz, k, ref_valid=valid)
-    return _replace(pts, normals=normals_from_neighbours(xyz, valid, idx, jnp.asarray(vp, xyz.dtype)))
+    return normals_from_neighbours(xyz, valid, idx, vp)
 
 
 NORMALS_BLOCK = 4096  # query rows per step of normals_from_neighbours' lax.map
@@ -358,6 +364,12 @@ def statistical_outlier_removal(pts: Points, /, *, k: int = 16, std_ratio: float
     op = "statistical_outlier_removal"
     k = check_static_int(op, "k", k, lo=1, hi=31)
     check_range(op, "std_ratio", std_ratio, 0.0, None)
+    return _replace(pts, valid=pts.valid & _sor_keep(pts, k, std_ratio))
+
+
+# One compiled program per cloud shape and k (op by op: ~25 small programs per shape).
+@functools.partial(jax.jit, static_argnames=("k",))
+def _sor_keep(pts: Points, k: int, std_ratio):
     valid = _valid_mask(pts)
     xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
     dt = xyz.dtype
@@ -372,8 +384,7 @@ def statistical_outlier_removal(pts: Points, /, *, k: int = 16, std_ratio: float
     mu = jnp.sum(jnp.where(use, md, 0.0)) / jnp.maximum(nu, 1.0)
     var = jnp.sum(jnp.where(use, (md - mu) ** 2, 0.0)) / jnp.maximum(nu - 1.0, 1.0)
     thr = mu + jnp.asarray(std_ratio, dt) * jnp.sqrt(var)
-    keep = use & (md <= thr)
-    return _replace(pts, valid=pts.valid & keep)
+    return use & (md <= thr)
 
 
 @register(family="points", takes=Points, gives=Points, knobs={"radius": LogKnob(0.02, 1.0)},

@@ -1018,14 +1018,31 @@ def build_index(ref_xyz: Any, ref_valid: Any = None, *, k: int = 8, cell: Any = 
     if ref.ndim != 2 or ref.shape[-1] != 3:
         raise ValueError(f"build_index: argument 'ref_xyz' must have shape (N, 3), got {tuple(ref.shape)}")
     valid = jnp.ones(ref.shape[0], bool) if ref_valid is None else jnp.asarray(ref_valid, bool)
+    cell = None if cell is None else jnp.asarray(cell, ref.dtype)
+    k = int(k) if cell is None else 0
+    build = _build_index_jit if _top_level(ref, valid, cell) else _build_index
+    return build(ref, valid, cell, k, bool(coarse))
+
+
+def _top_level(*trees) -> bool:
+    """No leaf is a tracer: the call is not inside a jit/vmap/grad (ICP's and the global fits'
+    programs call the functions below traced, and keep their own program unchanged)."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+
+
+# At top level, build_index, query_knn and query_radius each run as one compiled program per shape
+# (op by op, a build compiled ~40 small programs and a query ~60 at each new cloud or query size).
+def _build_index(ref, valid, cell, k, coarse):
     if cell is None:
-        k = int(k)
         h = _knn_cell_size(ref, valid, k) if ref.shape[0] > 0 else jnp.asarray(1.0, ref.dtype)
     else:
-        h = jnp.asarray(cell, ref.dtype) * (1 + 16 * jnp.finfo(ref.dtype).eps)
+        h = cell * (1 + 16 * jnp.finfo(ref.dtype).eps)
     if not coarse:
         return _grid(ref, valid, h)
     return _grid_levels(ref, valid, h)
+
+
+_build_index_jit = jax.jit(_build_index, static_argnames=("k", "coarse"))
 
 
 def _grid_levels(ref, valid, h):
@@ -1085,7 +1102,14 @@ def query_knn(index: GridIndex, query_xyz: Any, k: int, *, approx: Any = None, m
     if qry.shape[0] == 0 or index.ref.shape[0] == 0:
         return jnp.full((qry.shape[0], k), -1, jnp.int32), jnp.full((qry.shape[0], k), jnp.inf, qry.dtype)
     gate2 = None if max_dist is None else jnp.asarray(max_dist, qry.dtype) ** 2
-    return _query_grid_knn(index, qry, k, None if approx is None else jnp.asarray(approx, bool), gate2)
+    approx = None if approx is None else jnp.asarray(approx, bool)
+    query = _query_knn_jit if _top_level(index, qry, approx, gate2) else _query_grid_knn
+    return query(index, qry, k, approx, gate2)
+
+
+@jax.jit(static_argnames=("k",))
+def _query_knn_jit(index, qry, k, approx, gate2):
+    return _query_grid_knn(index, qry, k, approx, gate2)
 
 
 def query_radius(index: GridIndex, query_xyz: Any, radius: Any, capacity: int):
@@ -1101,8 +1125,12 @@ def query_radius(index: GridIndex, query_xyz: Any, radius: Any, capacity: int):
     if is_concrete(r) and is_concrete(index.h) and float(r) > float(index.h):
         raise ValueError(f"query_radius: argument 'radius' ({float(r)}) exceeds the index cell side "
                          f"({float(index.h)}); build the index with cell=radius")
-    idx, d2, cnt = _query_grid_radius(index, qry, r, capacity)
+    query = _query_radius_jit if _top_level(index, qry, r) else _query_grid_radius
+    idx, d2, cnt = query(index, qry, r, capacity)
     return idx, d2, cnt, (cnt > capacity) | (r > index.h)
+
+
+_query_radius_jit = jax.jit(_query_grid_radius, static_argnames=("capacity",))
 
 
 # ---------------------------------------------------------------------------
