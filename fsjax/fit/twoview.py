@@ -272,6 +272,21 @@ def _f_from_e(E, K1, K2):
     return F / jnp.linalg.norm(F)
 
 
+
+def _check_pairs(fn: str, uv1, uv2, n_hypotheses):
+    """The matched pixel arrays of a two-view RANSAC, checked: ``(N, 2)`` each, equal shapes, and at
+    least one hypothesis."""
+    uv1 = jnp.asarray(uv1)
+    if uv1.ndim != 2 or uv1.shape[1] != 2:
+        raise ValueError(f"{fn}: argument 'uv1' must have shape (N, 2), got {uv1.shape}")
+    uv2 = jnp.asarray(uv2, uv1.dtype)
+    if uv2.shape != uv1.shape:
+        raise ValueError(f"{fn}: argument 'uv2' must have shape {uv1.shape}, got {uv2.shape}")
+    if int(n_hypotheses) < 1:
+        raise ValueError(f"{fn}: argument 'n_hypotheses' must be >= 1, got {n_hypotheses}")
+    return uv1, uv2
+
+
 def relative_pose(key, uv1, uv2, K1, K2=None, *, dist1=None, dist2=None, threshold_px: float = 1.0,
                   n_hypotheses: int = 256, min_parallax_px: float = 1.5) -> TwoViewResult:
     """Relative pose of two calibrated views by RANSAC over normalised 8-point essential matrices.
@@ -312,14 +327,7 @@ def relative_pose(key, uv1, uv2, K1, K2=None, *, dist1=None, dist2=None, thresho
         >>> bool(res.converged), bool(res.degenerate), float(np.abs(np.asarray(res.t) - t).max()) < 1e-6
         (True, False, True)
     """
-    uv1 = jnp.asarray(uv1)
-    if uv1.ndim != 2 or uv1.shape[1] != 2:
-        raise ValueError(f"relative_pose: argument 'uv1' must have shape (N, 2), got {uv1.shape}")
-    uv2 = jnp.asarray(uv2, uv1.dtype)
-    if uv2.shape != uv1.shape:
-        raise ValueError(f"relative_pose: argument 'uv2' must have shape {uv1.shape}, got {uv2.shape}")
-    if int(n_hypotheses) < 1:
-        raise ValueError(f"relative_pose: argument 'n_hypotheses' must be >= 1, got {n_hypotheses}")
+    uv1, uv2 = _check_pairs("relative_pose", uv1, uv2, n_hypotheses)
     K1 = jnp.asarray(K1, uv1.dtype)
     K2 = K1 if K2 is None else jnp.asarray(K2, uv1.dtype)
     return _relative_pose(key, uv1, uv2, K1, K2, dist1, dist2, jnp.asarray(threshold_px, uv1.dtype),
@@ -553,14 +561,7 @@ def homography_ransac(key, uv1, uv2, *, threshold_px: float = 1.5, n_hypotheses:
         >>> bool(res.converged), int(res.n_inliers), bool(np.asarray(res.inliers)[:20].any())
         (True, 60, False)
     """
-    uv1 = jnp.asarray(uv1)
-    if uv1.ndim != 2 or uv1.shape[1] != 2:
-        raise ValueError(f"homography_ransac: argument 'uv1' must have shape (N, 2), got {uv1.shape}")
-    uv2 = jnp.asarray(uv2, uv1.dtype)
-    if uv2.shape != uv1.shape:
-        raise ValueError(f"homography_ransac: argument 'uv2' must have shape {uv1.shape}, got {uv2.shape}")
-    if int(n_hypotheses) < 1:
-        raise ValueError(f"homography_ransac: argument 'n_hypotheses' must be >= 1, got {n_hypotheses}")
+    uv1, uv2 = _check_pairs("homography_ransac", uv1, uv2, n_hypotheses)
     if not float(threshold_px) > 0:
         raise ValueError(f"homography_ransac: argument 'threshold_px' must be > 0, got {threshold_px}")
     return _homography_ransac(key, uv1, uv2, jnp.asarray(threshold_px, uv1.dtype), int(n_hypotheses))

@@ -184,6 +184,13 @@ def test_homography_building_blocks_and_fail_closed():
         homography_ransac(jax.random.PRNGKey(0), np.zeros((10, 2)), np.zeros((9, 2)))
     with pytest.raises(ValueError, match="homography_ransac.*threshold_px"):
         homography_ransac(jax.random.PRNGKey(0), uv1, uv2, threshold_px=0.0)
+    # the checks shared with relative_pose name the calling function and the argument
+    for fn in (homography_ransac, relative_pose):
+        name = fn.__name__
+        with pytest.raises(ValueError, match=f"{name}.*'uv1'.*\\(N, 2\\)"):
+            fn(jax.random.PRNGKey(0), np.zeros((10, 3)), np.zeros((10, 3)), *(() if fn is homography_ransac else (np.eye(3),)))
+        with pytest.raises(ValueError, match=f"{name}.*n_hypotheses"):
+            fn(jax.random.PRNGKey(0), uv1, uv2, *(() if fn is homography_ransac else (np.eye(3),)), n_hypotheses=0)
 
 
 def test_homography_ransac_float32():
