@@ -351,7 +351,7 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
     keep = np.r_[dmask > 0, np.ones(6 * n, bool)]
     y, nsteps, ok, r, sd_full = _solve_and_std(jnp.asarray(y0, dt), args, max_steps, rtol, atol,
                                                tuple(np.nonzero(keep)[0].tolist()), bool(verbose))
-    K, intr, rv, tv, d2, fields = _finish(y, r, sd_full, jnp.asarray(scale, dt), scale_j, ok, n)
+    K, intr, rv, tv, fields = _finish(y, r, sd_full, jnp.asarray(scale, dt), scale_j, ok, n)
     if verbose:
         print(f"calibrate_camera: {int(nsteps)} steps, converged {bool(ok)}, "
               f"rms {float(fields['rms_px']):.4f} px", flush=True)
@@ -362,7 +362,7 @@ def calibrate_camera(board_xyz, image_uv, image_size, *, max_steps: int = 200, r
 
 @functools.partial(jax.jit, static_argnames=("n",))
 def _finish(y, r, sd_full, scale, scale_j, ok, n):
-    """The solution unpacked: ``K``, intrinsics, poses, squared residuals per point, scaled std (one
+    """The solution unpacked: ``K``, intrinsics, poses and the result fields (RMS, scaled std, reason; one
     program; eager, these few lines compiled ~30 small ones)."""
     sd_full = sd_full.at[:9].multiply(scale)
     intr, rv, tv = _unpack(y, scale_j, n)
@@ -372,7 +372,7 @@ def _finish(y, r, sd_full, scale, scale_j, ok, n):
     fields = dict(rms_px=jnp.sqrt(jnp.mean(d2)), per_view_rms_px=jnp.sqrt(jnp.mean(d2, axis=1)), std=sd_full[:9],
                   pose_std=sd_full[9:].reshape(n, 6),
                   reason=jnp.where(ok, reason_code("ok"), reason_code("max_iterations")).astype(jnp.int32))
-    return K, intr, rv, tv, d2, fields
+    return K, intr, rv, tv, fields
 
 
 # compiled with fsjax._linalg.FAST_COMPILE (calibrate_camera is called eagerly: its start is NumPy)
