@@ -83,6 +83,34 @@ def test_normals_match_numpy_pca_and_invalid():
     assert bool(jnp.all(jnp.isnan(nl)))
 
 
+def test_normals_on_the_grid_in_sorted_order_equal_the_original_order(dtype=np.float32):
+    # above knn's brute-force range estimate_normals queries the grid with its own points in the grid's
+    # sorted order and runs the PCA there: the same normals, bit for bit, as knn in the original order
+    # followed by normals_from_neighbours (the null: the sorted path off), and NumPy PCA normals
+    rng = np.random.default_rng(5)
+    n, k = 2100, 16
+    xyz = (rng.normal(size=(n, 3)) * [1.0, 0.7, 0.05]).astype(dtype)
+    valid = np.ones(n, bool)
+    valid[::11] = False
+    pts = fsjax.Points(jnp.asarray(xyz), valid=jnp.asarray(valid))
+    vp = jnp.zeros(3, jnp.asarray(xyz).dtype)
+    assert n * n > P._BRUTE_LIMIT  # the grid path
+    got = np.asarray(jax.jit(lambda p: P._estimate_normals_core.__wrapped__(p, k, vp))(pts))
+    try:
+        P._SORTED_NORMALS = False
+        ref = np.asarray(jax.jit(lambda p: P._estimate_normals_core.__wrapped__(p, k, vp))(pts))
+    finally:
+        P._SORTED_NORMALS = True
+    assert np.array_equal(got, ref, equal_nan=True)
+    assert np.isnan(got[~valid]).all() and np.isfinite(got[valid]).all()
+    vi = np.flatnonzero(valid)
+    _, nb = cKDTree(xyz[vi]).query(xyz[vi[:300]], k)
+    worst = max(1 - abs(float(np.linalg.eigh(np.cov(xyz[vi[j]].T.astype(np.float64), bias=True))[1][:, 0]
+                               @ got[vi[i]])) for i, j in enumerate(nb))
+    print(f"grid-path normals ({np.dtype(dtype).name}) vs NumPy PCA, 300 points: max 1-|cos| = {worst:.1e}")
+    assert worst < (1e-4 if dtype == np.float32 else 1e-9)
+
+
 def test_normals_in_blocks_equal_all_at_once_and_bounded_temporaries():
     # normals_from_neighbours does its rows in blocks under lax.map (bounded temporaries): the same
     # normals as all rows at once (invalid rows, short -1-padded lists and a last partial block

@@ -36,6 +36,7 @@ from jax import lax
 from ..._checks import check_positive, check_range, check_static_int
 from ...registry import LinKnob, LogKnob, register
 from ...types import Points
+from ._search import _BRUTE_LIMIT, _grid, _knn_cell_size, _self_knn_sorted, _unsort
 from ._search import knn as _search_knn
 
 __all__ = [
@@ -186,8 +187,18 @@ def estimate_normals(pts: Points, /, *, k: int = 16, viewpoint: tuple[float, flo
 def _estimate_normals_core(pts: Points, k: int, vp):
     valid = _valid_mask(pts)
     xyz = jnp.where(valid[:, None], pts.xyz, 0.0)
-    idx, _ = knn(xyz, xyz, k, ref_valid=valid)
-    return normals_from_neighbours(xyz, valid, idx, vp)
+    n = xyz.shape[0]
+    if not _SORTED_NORMALS or n * n <= _BRUTE_LIMIT:  # knn's brute-force range
+        idx, _ = knn(xyz, xyz, k, ref_valid=valid)
+        return normals_from_neighbours(xyz, valid, idx, vp)
+    # the grid's self-query and the PCA in the grid's sorted order (coherent gathers), then unsorted:
+    # the same neighbours and the same arithmetic per row as knn + normals_from_neighbours
+    g = _grid(xyz, valid, _knn_cell_size(xyz, valid, k))
+    pos, _ = _self_knn_sorted(g, k)
+    return _unsort(g.order, normals_from_neighbours(g.spts, valid[g.order], pos, vp))
+
+
+_SORTED_NORMALS = True  # estimate_normals in the grid's sorted order (a probe knob)
 
 
 NORMALS_BLOCK = 4096  # query rows per step of normals_from_neighbours' lax.map

@@ -1028,6 +1028,29 @@ def _chain_loop(g: GridIndex, qry, k, outs, approx, gated, S, kth=None, live=Non
     return d2, idx, cert
 
 
+def _unsort(order, a):
+    """Rows of ``a`` given in an index's sorted order, back in the original order: ``out[order[i]] = a[i]``."""
+    return jnp.zeros_like(a).at[order].set(a, unique_indices=True)
+
+
+def _self_knn_sorted(g: GridIndex, k: int):
+    """Exact k-NN of every indexed point among the indexed points, the queries in the index's sorted
+    order: the points of one cell are consecutive rows, so the candidate gathers of neighbouring rows
+    hit the same memory (a self-query needs no sort of its own: the index's order is free).
+
+    Returns ``(pos, dist2)`` ``(N, k)``, row ``i`` the ``i``-th point in sorted order (``g.spts[i]``),
+    ``pos`` the neighbours' *sorted positions* (``-1`` missing): a caller reads ``g.spts[pos]`` and
+    puts its per-row results back with :func:`_unsort`. The rows of invalid points (sorted last) are
+    not searched (missing). Each row is the answer :func:`knn` gives for the same point (a row's
+    answer depends on its query only). At 100,000 bunny points, k = 30, float32, the query measured
+    452 ms against 516 ms in the original order (load 6, ``probes/prof_self.py``, branch index40).
+    """
+    n = g.spts.shape[0]
+    idx, d2 = _query_grid_knn(g, g.spts, k, n_q=g.cstart[-1])
+    inv = _unsort(g.order, jnp.arange(n, dtype=jnp.int32))
+    return jnp.where(idx >= 0, inv[jnp.maximum(idx, 0)], -1), d2
+
+
 def _grid_knn(ref, valid, qry, k):
     return _query_grid_knn(_grid(ref, valid, _knn_cell_size(ref, valid, k)), qry, k)
 
