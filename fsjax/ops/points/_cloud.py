@@ -21,7 +21,10 @@ Conventions:
   ``jax.vmap``.
 
 The neighbour search is :func:`fsjax.ops.knn` (exact, sorted-cell grid;
-equal to ``scipy.spatial.cKDTree``), so ``k`` is at most 32.
+equal to ``scipy.spatial.cKDTree``), so ``k`` is at most 32. ``estimate_normals``
+on the grid runs its self-query and PCA in the grid's sorted order (the points
+of one cell are consecutive rows: coherent gathers) and puts the normals back
+in the input order; the same neighbours and arithmetic per point as ``knn``.
 """
 
 from __future__ import annotations

@@ -529,7 +529,7 @@ def _sort_by_key(key, t: int):
     of the words ``key << b | index`` (one operand, unsigned) gives both; they are distinct, so the
     order is the stable one, the same as ``argsort``'s. XLA:CPU's sort of one 32-bit operand is ~5x
     faster than of two (``argsort``: keys and an iota; measured 0.8 vs 3.9 ms at 20,000 keys,
-    3.7 vs 20.4 ms at 100,000, ``probes/prof_prim.py`` of branch index40). Larger clouds (up to
+    3.7 vs 20.4 ms at 100,000; ``benchmarks/profile_index_build.py``). Larger clouds (up to
     ``sh = log2 t + ceil(log2 N) - 32 <= 6``: ~500,000 points): the words hold the key and the index's
     high bits; a run of equal words is resolved by a search among the ``2^sh`` indices sharing them.
     Beyond: ``argsort``. Every path gives the same (stable) order.
@@ -1043,7 +1043,7 @@ def _self_knn_sorted(g: GridIndex, k: int):
     puts its per-row results back with :func:`_unsort`. The rows of invalid points (sorted last) are
     not searched (missing). Each row is the answer :func:`knn` gives for the same point (a row's
     answer depends on its query only). At 100,000 bunny points, k = 30, float32, the query measured
-    452 ms against 516 ms in the original order (load 6, ``probes/prof_self.py``, branch index40).
+    452 ms against 516 ms in the original order (load 6; ``docs/benchmarks_points.md``).
     """
     n = g.spts.shape[0]
     idx, d2 = _query_grid_knn(g, g.spts, k, n_q=g.cstart[-1])
