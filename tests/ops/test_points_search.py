@@ -555,18 +555,20 @@ def test_warm_started_query_equals_the_plain_one():
     assert not np.asarray(answered(ix, jnp.asarray(q), jnp.full(n, 11, jnp.int32))).any()
 
 
-@pytest.mark.parametrize("n", [5000, 40000, 140000])
-def test_grid_sort_and_cell_starts_equal_a_stable_argsort(n):
-    """The index build's key sort (one sort of packed (key, index) words where they fit in 32 bits, an
-    argsort above) is the stable order, invalid points (key int32 max) last, and its cell-start table
-    is the prefix sum of the cell counts."""
+@pytest.mark.parametrize("n, few_cells", [(5000, False), (40000, True), (40000, False), (140000, True)])
+def test_grid_sort_and_cell_starts_equal_a_stable_argsort(n, few_cells):
+    """The index build's key sort (one sort of packed (key, index) words where they fit in 32 bits --
+    always up to 32,768 points, above when the grid has few cells -- else an argsort) is the stable
+    order, invalid points (key int32 max) last, and its cell-start table is the prefix sum of the
+    cell counts."""
     from fsjax.ops.points import _search as S
 
     rng = np.random.default_rng(3)
     t = S._table_size(n)
-    key = rng.integers(0, min(t - 1, n // 8), n).astype(np.int32)  # ~8 points per key: many ties
+    ncells = 1000 if few_cells else t - 1
+    key = rng.integers(0, min(ncells, n // 8), n).astype(np.int32)  # ~8 points per key: many ties
     key[rng.random(n) < 0.1] = np.iinfo(np.int32).max
-    order, skey = jax.jit(lambda k: S._sort_by_key(k, t))(jnp.asarray(key))
+    order, skey = jax.jit(lambda k: S._sort_by_key(k, t, jnp.int32(ncells)))(jnp.asarray(key))
     ref = np.argsort(key, kind="stable")
     np.testing.assert_array_equal(np.asarray(order), ref)
     np.testing.assert_array_equal(np.asarray(skey), key[ref])

@@ -24,7 +24,8 @@ sense of Teschner et al. 2003 and Green 2010, with an exactness certificate):
    (``h = radius`` for radius search; for kNN ``h`` is 1.5 times the median
    k-th neighbour distance of a strided sample of 16 reference points, found
    by brute force). Cells are keyed ``(z * Gy + y) * Gx + x`` and the points are
-   sorted by key (one sort of 32-bit words packing the key and the point's index:
+   sorted by key (one sort of 32-bit words packing the key and the point's index
+   where both fit -- up to 32,768 points, and the coarse levels of larger clouds --:
    the stable order, ~5x faster on XLA:CPU than an argsort's two operands); the
    grid has fewer than ``T`` cells (a static power of two ``>= 4 N``; ``h`` grows
    by 1.25x until the bounding box fits), and a table
@@ -518,10 +519,9 @@ def _table_size(n: int) -> int:
 
 _PACKED_SORT = True  # order the points by one sort of packed (key, index) words (a probe knob)
 _PREFIX_W = 512  # row width of _prefix_sum (a probe knob)
-_SORT_SHIFT_MAX = 6  # _sort_by_key: index bits beyond 32 resolved by a 2^shift-wide search, at most
 
 
-def _sort_by_key(key, t: int):
+def _sort_by_key(key, t: int, ncells=None):
     """``(order, sorted keys)``: the points in ascending cell key, equal keys by index (the stable order).
 
     ``key`` (N,) int32 in ``[0, t - 1)`` or ``_SENTINEL`` (invalid points, sorted last). When the key
@@ -529,45 +529,34 @@ def _sort_by_key(key, t: int):
     of the words ``key << b | index`` (one operand, unsigned) gives both; they are distinct, so the
     order is the stable one, the same as ``argsort``'s. XLA:CPU's sort of one 32-bit operand is ~5x
     faster than of two (``argsort``: keys and an iota; measured 0.8 vs 3.9 ms at 20,000 keys,
-    3.7 vs 20.4 ms at 100,000; ``benchmarks/profile_index_build.py``). Larger clouds (up to
-    ``sh = log2 t + ceil(log2 N) - 32 <= 6``: ~500,000 points): the words hold the key and the index's
-    high bits; a run of equal words is resolved by a search among the ``2^sh`` indices sharing them.
-    Beyond: ``argsort``. Every path gives the same (stable) order.
+    3.7 vs 20.4 ms at 100,000; ``benchmarks/profile_index_build.py``). Larger clouds: the same words
+    when the grid's cell count ``ncells`` (traced) leaves room for the index (a coarse level's, whose
+    cells are 64x fewer), else ``argsort`` (a ``lax.cond``). (Words holding the index's high bits and a
+    search resolving runs of equal words gave the 5x at every level, but +0.3-0.4 s of compile, +13 %
+    of a 100,000-point ``knn`` program: not kept.)
     """
     n = key.shape[0]
-    kb = t.bit_length() - 1
     ib = max(1, (n - 1).bit_length())
-    sh = max(0, kb + ib - 32)  # index bits that do not fit beside the key
-    if not _PACKED_SORT or sh > _SORT_SHIFT_MAX:
+    iota = jnp.arange(n, dtype=jnp.uint32)
+
+    def packed(key, top):  # keys < top - 1, top <= 2^(32 - ib); invalid points -> top - 1
+        kk = jnp.where(key == _SENTINEL, top - 1, key).astype(jnp.uint32)
+        w = lax.sort((kk << ib) | iota)
+        sk = (w >> ib).astype(jnp.int32)
+        return (w & np.uint32((1 << ib) - 1)).astype(jnp.int32), jnp.where(sk == top - 1, _SENTINEL, sk)
+
+    def by_argsort(key):
         order = jnp.argsort(key).astype(jnp.int32)
         return order, key[order]
-    kk = jnp.where(key == _SENTINEL, t - 1, key).astype(jnp.uint32)
-    iota = jnp.arange(n, dtype=jnp.uint32)
-    w = lax.sort((kk << (ib - sh)) | (iota >> sh))
-    sk = (w >> (ib - sh)).astype(jnp.int32)
-    low = (w & ((1 << (ib - sh)) - 1)).astype(jnp.int32)
-    if sh == 0:
-        order = low
-    else:
-        # the word holds the index's high bits only: the j-th of a run of equal words (key, high bits)
-        # is the j-th index with that key among the 2^sh indices sharing those high bits (ascending,
-        # so the order stays the stable one)
-        # (a run of equal words is rare: the j-th match is found by clearing the first j matches)
-        pos = jnp.arange(n, dtype=jnp.int32)
-        same = jnp.concatenate([jnp.zeros(1, bool), w[1:] == w[:-1]])
-        j = pos - lax.cummax(jnp.where(same, 0, pos))
-        m = 1 << sh
-        blocks = jnp.pad(kk, (0, -n % m), constant_values=np.uint32(0xFFFFFFFF)).reshape(-1, m)
-        match = blocks[low] == sk.astype(jnp.uint32)[:, None]  # one row gather per point
-        col = jnp.arange(m, dtype=jnp.int32)[None, :]
 
-        def drop_first(r, mt):
-            first = jnp.argmax(mt, axis=1).astype(jnp.int32)[:, None]
-            return mt & ((col != first) | (r >= j[:, None]))
-
-        match = lax.fori_loop(0, jnp.max(j), drop_first, match)
-        order = (low << sh) + jnp.argmax(match, axis=1).astype(jnp.int32)
-    return order, jnp.where(sk == t - 1, _SENTINEL, sk)
+    if not _PACKED_SORT:
+        return by_argsort(key)
+    if (t.bit_length() - 1) + ib <= 32:
+        return packed(key, t)
+    if ncells is None:
+        return by_argsort(key)
+    cap = 1 << (32 - ib)
+    return lax.cond(ncells < cap, lambda key: packed(key, cap), by_argsort, key)
 
 
 def _prefix_sum(c):
@@ -602,7 +591,7 @@ def _grid(ref, valid, h) -> GridIndex:
     h = lax.while_loop(lambda h: jnp.prod(jnp.floor(ext / h) + 1) > t - 1, lambda h: h * 1.25, h)
     dims = jnp.clip(jnp.floor(ext / h).astype(jnp.int32) + 1, 1, t - 1)
     key = jnp.where(valid, _cell_key(ref, lo, h, dims), _SENTINEL)
-    order, skey = _sort_by_key(key, t)
+    order, skey = _sort_by_key(key, t, jnp.prod(dims))
     counts = jnp.zeros(t, jnp.int32).at[key].add(1, mode="drop")
     cstart = jnp.concatenate([jnp.zeros(1, jnp.int32), _prefix_sum(counts)])
     return GridIndex(ref, valid, lo, h, dims, skey, ref[order], order, cstart=cstart)
