@@ -47,7 +47,7 @@ from ..ops.points._search import _BRUTE_LIMIT, build_index
 from ..types import Points
 from ..types.results import FitResult, WrappedFit
 from ._cloud import as_cloud
-from .icp import ICPResult, icp
+from .icp import ICPResult, _p2plane_step, icp
 from .rigid import NO_HYPOTHESIS, OK, TOO_FEW, _weighted_kabsch, kabsch_umeyama
 
 __all__ = ["fpfh", "spin_images", "shot", "match_descriptors", "CorrespondenceRansacResult", "ransac_registration", "GlobalResult",
@@ -112,7 +112,7 @@ def _fpfh_core(xyz, valid, normals, radius, *, capacity, normal_k):
     wk = wk / jnp.where(ws > 0, ws, 1.0)
     f = 0.5 * spfh + 0.5 * jnp.einsum("nk,nkf->nf", wk, spfh[j])
     good = nok & (jnp.sum(m, -1) >= 3)
-    return jnp.where(good[:, None], f, 0.0), good, truncated
+    return jnp.where(good[:, None], f, 0.0), good, truncated, normals
 
 
 def _descriptor_args(fn, points, radius, capacity, normal_k, min_capacity):
@@ -153,6 +153,11 @@ def fpfh(
         >>> bool(ok1.all()), float(jnp.abs(f1 - f2).max()) < 1e-9   # rotation invariant
         (True, True)
     """
+    return _fpfh(points, radius=radius, capacity=capacity, normal_k=normal_k)[:3]
+
+
+def _fpfh(points, *, radius, capacity=48, normal_k=10):
+    """:func:`fpfh` and the normals it used (``(N, 3)``, 0 where missing)."""
     xyz, valid, nrm, capacity, normal_k = _descriptor_args("fpfh", points, radius, capacity, normal_k, 3)
     return _fpfh_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=normal_k)
 
@@ -235,7 +240,7 @@ def _spin_core(xyz, valid, normals, radius, cos_support, *, capacity, normal_k, 
     img = img - jnp.mean(img, -1, keepdims=True)
     nrm = jnp.linalg.norm(img, axis=-1, keepdims=True)
     good = nok & (jnp.sum(m, -1) >= 3) & (nrm[:, 0] > 0)
-    return jnp.where(good[:, None], img / jnp.where(nrm > 0, nrm, 1.0), 0.0), good, truncated
+    return jnp.where(good[:, None], img / jnp.where(nrm > 0, nrm, 1.0), 0.0), good, truncated, n
 
 
 def spin_images(
@@ -292,7 +297,15 @@ def spin_images(
     check_range(fn, "support_angle", support_angle, 0.0, 180.0, lo_open=True)
     cs = jnp.asarray(np.cos(np.deg2rad(float(support_angle))) - 1e-12, xyz.dtype)
     return _spin_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), cs, capacity=capacity,
-                      normal_k=normal_k, n_alpha=n_alpha, n_beta=n_beta)
+                      normal_k=normal_k, n_alpha=n_alpha, n_beta=n_beta)[:3]
+
+
+def _spin(points, *, radius, capacity=48):
+    """:func:`spin_images` (default bins) and the normals it used (``(N, 3)``, 0 where missing)."""
+    xyz, valid, nrm, capacity, normal_k = _descriptor_args("spin_images", points, radius, capacity, 10, 3)
+    cs = jnp.asarray(-1.0 - 1e-12, xyz.dtype)
+    return _spin_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), cs, capacity=capacity, normal_k=normal_k,
+                      n_alpha=8, n_beta=16)
 
 
 _SHOT_COS, _SHOT_AZ, _SHOT_EL, _SHOT_RAD = 11, 8, 2, 2
@@ -324,7 +337,7 @@ def _shot_core(xyz, valid, normals, radius, *, capacity, normal_k):
     h = jnp.einsum("nk,nka,nkb,nkc,nkd->nabcd", m.astype(dt), w_az, w_el, w_rad, w_cos).reshape(xyz.shape[0], -1)
     nrm = jnp.linalg.norm(h, axis=-1, keepdims=True)
     good = valid & nok & (jnp.sum(m, -1) >= 5) & (nrm[:, 0] > 0)
-    return jnp.where(good[:, None], h / jnp.where(nrm > 0, nrm, 1.0), 0.0), good, truncated
+    return jnp.where(good[:, None], h / jnp.where(nrm > 0, nrm, 1.0), 0.0), good, truncated, n
 
 
 def shot(
@@ -366,11 +379,17 @@ def shot(
         >>> bool(ok1.mean() > 0.95), float(jnp.abs(f1 - f2).max()) < 1e-6   # rotation invariant
         (True, True)
     """
+    return _shot(points, radius=radius, capacity=capacity, normal_k=normal_k)[:3]
+
+
+def _shot(points, *, radius, capacity=48, normal_k=10):
+    """:func:`shot` and the normals it used (``(N, 3)``, 0 where missing)."""
     xyz, valid, nrm, capacity, normal_k = _descriptor_args("shot", points, radius, capacity, normal_k, 5)
     return _shot_core(xyz, valid, nrm, jnp.asarray(radius, xyz.dtype), capacity=capacity, normal_k=normal_k)
 
 
 DESCRIPTORS = {"fpfh": fpfh, "spin": spin_images, "shot": shot}
+_WITH_NORMALS = {"fpfh": _fpfh, "spin": _spin, "shot": _shot}  # the same, plus the normals they used
 
 
 def match_descriptors(desc_src, desc_tgt, valid_src=None, valid_tgt=None, *, mutual: bool = True):
@@ -658,9 +677,9 @@ def global_registration(
         :class:`GlobalResult`. A failed RANSAC (reason != 0) gives a failed refinement (NaN) too.
     """
     check_choice("global_registration", "descriptor", descriptor, tuple(DESCRIPTORS))
-    describe = DESCRIPTORS[descriptor]
-    fs, vs, trs = describe(source, radius=radius, capacity=capacity)
-    ft, vt, trt = describe(target, radius=radius, capacity=capacity)
+    describe = _WITH_NORMALS[descriptor]
+    fs, vs, trs, _ = describe(source, radius=radius, capacity=capacity)
+    ft, vt, trt, nt = describe(target, radius=radius, capacity=capacity)
     xs, vsrc, _ = as_cloud("global_registration", "source", source)
     xt, vtgt, _ = as_cloud("global_registration", "target", target)
     vsrc = vsrc & jnp.all(jnp.isfinite(xs), -1)
@@ -670,7 +689,8 @@ def global_registration(
     coarse = ransac_registration(key, xs, xt[idx], ok, distance=distance, n_hypotheses=n_hypotheses)
     r_matches = coarse.R
     if refit_rounds:
-        coarse = _point_refit(coarse, xs, xt, vsrc, vtgt, jnp.asarray(0.5 * distance, xs.dtype), int(refit_rounds))
+        coarse = _point_refit(coarse, xs, xt, nt.astype(xs.dtype), vsrc, vtgt, jnp.asarray(0.5 * distance, xs.dtype),
+                              int(refit_rounds))
     if refine is None:
         refined = ICPResult(R=coarse.R, t=coarse.t, rms_len=jnp.asarray(jnp.nan, xs.dtype),
                             iterations=jnp.int32(0), converged=coarse.converged,
@@ -688,20 +708,45 @@ def global_registration(
                         n_truncated=jnp.sum(trs) + jnp.sum(trt))
 
 
-@jit_fast_compile(static_argnames=("rounds",))
-def _point_refit(coarse, xs, xt, vs, vt, distance, rounds):
+@jit_fast_compile(static_argnames=("rounds", "metric"))
+def _point_refit(coarse, xs, xt, nt, vs, vt, distance, rounds, metric="plane"):
+    """Refit the coarse pose on nearest-point pairs closer than ``distance``, ``rounds`` times at most.
+
+    ``metric="plane"``: one Gauss-Newton step of the point-to-plane error on the target normals
+    ``nt`` per round (pairs whose target normal is missing (0) take no part), stopping once the
+    step turns less than 1e-6 rad and moves less than 1e-6 ``distance`` (float32: 64 eps); ``"point"``: closed-form
+    Kabsch on the pairs (the refit before 2026-12-05, kept to measure against).
+    """
     r, t = coarse.R, coarse.t
     index = build_index(xt, vt, k=4) if xs.shape[0] * xt.shape[0] > _BRUTE_LIMIT else None  # built once
+    n_ok = jnp.sum(nt * nt, -1) > 0
+    tol = max(1e-6, 64 * float(jnp.finfo(xs.dtype).eps))  # float32: the solve's rounding noise
 
-    def step(_, rt):
-        r, t = rt
+    def pairs(r, t):
         p = xs @ r.T + t
         j, d2 = knn(xt, p, 1, index=index, ref_valid=None if index is not None else vt)
         w = vs & (j[:, 0] >= 0) & (d2[:, 0] <= distance**2)
-        fit = kabsch_umeyama(xs, xt[jnp.maximum(j[:, 0], 0)], weights=w.astype(xs.dtype))
-        return jnp.where(fit.converged, fit.R, r), jnp.where(fit.converged, fit.t, t)
+        return p, jnp.maximum(j[:, 0], 0), w
 
-    r, t = jax.lax.fori_loop(0, rounds, step, (r, t))  # a loop, not `rounds` unrolled copies to compile
+    if metric == "point":
+        def step(_, rt):
+            _, j, w = pairs(*rt)
+            fit = kabsch_umeyama(xs, xt[j], weights=w.astype(xs.dtype))
+            return jnp.where(fit.converged, fit.R, rt[0]), jnp.where(fit.converged, fit.t, rt[1])
+
+        r, t = jax.lax.fori_loop(0, rounds, step, (r, t))  # a loop, not `rounds` unrolled copies to compile
+        return eqx.tree_at(lambda c: (c.R, c.t), coarse, (r, t))
+
+    def body(st):
+        r, t, i, _ = st
+        p, j, w = pairs(r, t)
+        dr, dt, ok = _p2plane_step(p, xt[j], nt[j], (w & n_ok[j]).astype(xs.dtype))
+        sin_turn = 0.5 * jnp.linalg.norm(jnp.stack([dr[2, 1] - dr[1, 2], dr[0, 2] - dr[2, 0], dr[1, 0] - dr[0, 1]]))
+        small = (sin_turn < tol) & (jnp.linalg.norm(dt) < tol * distance)
+        return (jnp.where(ok, dr @ r, r), jnp.where(ok, dr @ t + dt, t), i + 1, small | ~ok)
+
+    r, t, _, _ = jax.lax.while_loop(lambda st: (st[2] < rounds) & ~st[3], body,
+                                    (r, t, jnp.int32(0), jnp.bool_(False)))
     return eqx.tree_at(lambda c: (c.R, c.t), coarse, (r, t))
 
 
