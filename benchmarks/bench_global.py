@@ -148,7 +148,7 @@ def stages_part(repeats: int, old) -> None:
         "fsjax RANSAC": lambda: jax.block_until_ready(
             gr.ransac_registration(key, s, t[idx], ok, distance=DIST, n_hypotheses=HYP)),
         "fsjax point refit": lambda: jax.block_until_ready(
-            gr._point_refit(coarse, s, t, ft_[3], vs, vt, half, 10)),
+            gr._point_refit(coarse, s, t, ft_[3], vs, vt & ~ft_[4], half, 10)),
         "fsjax whole call": lambda: fs_call(gr, 0, s, t),
         "Open3D whole call": lambda: o3d_call(src, tgt),
     }
