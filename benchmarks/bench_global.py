@@ -168,14 +168,14 @@ def stages_part(repeats: int, old) -> None:
         print(f"  {k:24s} {np.median(a[:, 0]):8.1f} / {np.median(a[:, 1]):8.1f}")
 
 
-def n20k_part(repeats: int, voxel: float, seeds: int) -> None:
+def n20k_part(repeats: int, voxel: float, seeds: int, old=None) -> None:
     cap = 4096
     down = jax.jit(lambda x: fsjax.ops.voxel_downsample(fsjax.Points(x), voxel=voxel, capacity=cap))
 
-    def fs_run(seed, src, tgt):
+    def fs_run(seed, src, tgt, mod=gr):
         a, b = down(src), down(tgt)
-        return a, b, jax.block_until_ready(gr.global_registration(jax.random.key(seed), a, b, radius=RADIUS,
-                                                                  distance=DIST, n_hypotheses=HYP, refine=None))
+        return a, b, jax.block_until_ready(mod.global_registration(jax.random.key(seed), a, b, radius=RADIUS,
+                                                                   distance=DIST, n_hypotheses=HYP, refine=None))
 
     e_fs, e_o3 = [], []
     for seed in range(seeds):
@@ -185,6 +185,8 @@ def n20k_part(repeats: int, voxel: float, seeds: int) -> None:
         o = o3d_call(src, tgt, voxel=voxel)
         e_fs.append(err(res.coarse.R))
         e_o3.append(err(o.transformation[:3, :3]))
+        if old is not None:
+            print(f"20k seed {seed}: old fsjax {err(fs_run(seed, s, t, old)[2].coarse.R):.3f} deg")
         print(f"20k seed {seed}: {len(src)} / {len(tgt)} points -> fsjax {int(a.valid.sum())} / {int(b.valid.sum())} "
               f"(truncated {bool(a.truncated)} / {bool(b.truncated)}); fsjax {e_fs[-1]:.3f} deg "
               f"({int(res.coarse.n_inliers)} inliers), Open3D {e_o3[-1]:.3f} deg", flush=True)
@@ -194,12 +196,14 @@ def n20k_part(repeats: int, voxel: float, seeds: int) -> None:
     s, t = jnp.asarray(src), jnp.asarray(tgt)
     parts = {"fsjax 20k (downsample + FPFH + RANSAC + refit)": lambda: fs_run(0, s, t),
              "Open3D 20k (downsample + FPFH + RANSAC)": lambda: o3d_call(src, tgt, voxel=voxel)}
+    if old is not None:
+        parts["fsjax old 20k"] = lambda: fs_run(0, s, t, old)
     for f in parts.values():
         f()
     res = {k: [] for k in parts}
     for r in range(repeats):
         names = list(parts)
-        names = names[r % 2:] + names[:r % 2]
+        names = names[r % len(names):] + names[:r % len(names)]
         for k in names:
             res[k].append(_timed(parts[k]))
     for k, v in res.items():
@@ -224,7 +228,7 @@ def main() -> None:
     if args.stages:
         stages_part(args.repeats, old)
     if args.n20k:
-        n20k_part(args.repeats, args.voxel, args.n20k_seeds)
+        n20k_part(args.repeats, args.voxel, args.n20k_seeds, old)
     print(f"load after: {load_average()}")
 
 
