@@ -208,7 +208,7 @@ def _boundary(xyz, normals, idx, d2):
 
     For uniform samples on a disc the shift is 0 (sampling noise: about 0.09 at 48 neighbours); on
     a half-disc (a straight edge through the point) it is 4 / (3 pi) = 0.42; 0.2 lies between (0.25
-    kept more of the crop edges' pull: docs/registration.md).
+    gave a larger max on the bunny crops and worse CAD-vs-scan pairs: docs/benchmarks_icp.md).
     """
     ok = jnp.isfinite(d2)
     off = jnp.where(ok[..., None], xyz[jnp.maximum(idx, 0)] - xyz[:, None, :], 0.0)
