@@ -114,6 +114,16 @@ def test_point_to_plane_refit_beats_the_point_to_point_one():
     e = np.array(out)
     assert np.all(e[:, 2] <= 0.5)  # the goal
     assert np.all(e[:, 1] > 0.5) and np.all(e[:, 2] < e[:, 1])  # the null misses it on these seeds
+    # float32 (the user's default): the refit works in the target's normalised frame; in metres its
+    # Gauss-Newton steps were all refused as singular and the RANSAC pose came back (here 4.23 deg)
+    s32, t32 = (jnp.asarray((xs - shift) @ r, jnp.float32), jnp.asarray(xt, jnp.float32))
+    res32 = global_registration(jax.random.key(8), s32, t32, radius=0.025, distance=0.01, n_hypotheses=8192,
+                                refine=None)
+    e32 = float(rotation_error_deg(res32.coarse.R, jnp.asarray(r, jnp.float32)))
+    e32_ransac = float(rotation_error_deg(res32.coarse_matches_R, jnp.asarray(r, jnp.float32)))
+    print(f"seed 8 in float32: RANSAC alone {e32_ransac:.3f} deg, refit {e32:.3f} deg")
+    assert res32.coarse.R.dtype == jnp.float32 and bool(res32.coarse.converged)
+    assert e32 <= 0.5 and e32 < e32_ransac
 
 
 def test_ransac_refuses_a_pose_that_chance_explains():
