@@ -51,7 +51,7 @@ from .._checks import check_choice, check_positive, check_range, check_static_in
 from .._linalg import eigh_small, jit_fast_compile
 from ..ops import knn
 from ..ops.points._cloud import normals_from_neighbours
-from ..ops.points._search import build_index, query_knn
+from ..ops.points._search import _BRUTE_LIMIT, build_index, query_knn
 from ..types import Points
 from ..types.results import FitResult, WrappedFit
 from ._cloud import as_cloud
@@ -822,15 +822,18 @@ def _point_refit(coarse, xs, xt, nt, vs, vt, distance, rounds, metric="plane"):
     sc = jnp.where(sc > 0, sc, 1.0)
     xs, xt, distance = (xs - c) / sc, (xt - c) / sc, distance / sc
     r, t = coarse.R, (coarse.t + coarse.R @ c - c) / sc
-    # built once, also at sizes where knn's "auto" takes brute force: a query gated at ``distance``
-    # stops at the first cell block past it (2,000 points: 1.6 ms a round instead of 17)
-    index = build_index(xt, vt, k=4)
+    # above knn's brute-force size the target's grid is built once and queried with the gate as
+    # ``max_dist`` (a query stops at the first cell block past it). Below it, brute force: the gated
+    # grid query ran 1.6 ms a round instead of 11 at 2,000 points, but compiled 1.7 s CPU longer
+    # (FPFH + RANSAC's first call then passed issue 13's 5 s)
+    grid = xs.shape[0] * xt.shape[0] > _BRUTE_LIMIT
+    index = build_index(xt, vt, k=4) if grid else None
     n_ok = jnp.sum(nt * nt, -1) > 0
     tol = max(1e-6, 64 * float(jnp.finfo(dtype).eps))  # float32: the solve's rounding noise
 
     def pairs(r, t):
         p = xs @ r.T + t
-        j, d2 = query_knn(index, p, 1, max_dist=distance)
+        j, d2 = query_knn(index, p, 1, max_dist=distance) if grid else knn(xt, p, 1, ref_valid=vt)
         w = vs & (j[:, 0] >= 0) & (d2[:, 0] <= distance**2)
         return p, jnp.maximum(j[:, 0], 0), w
 
