@@ -182,7 +182,7 @@ AUDIT = [
      "size; null, random points: 0.0; float32 seed 0 >= 0.85; this run)", "mean yes, 2 seeds of 3 (seed 2 0.79)",
      f"`{_PT} tests/ops/test_match3d_desc.py -k repeatability`"),
     ("spin images + RANSAC", "1.84 deg",
-     "RANSAC on spin matches alone 2.53 / 0.99 / 1.64 deg (seeds 0-2, mean 1.72); + point-pair refit 0.29-0.65 deg",
+     "RANSAC on spin matches alone 2.53 / 0.99 / 1.64 deg (seeds 0-2, mean 1.72); + point-pair refit 0.08-0.22 deg (point-to-plane since 2026-12-05; point-to-point 0.29-0.65)",
      "mean yes, 2 of 3 seeds (seed 0 2.53); with the refit yes",
      "docs/registration.md; `python -c \"from fsjax.tour.registration import measure_global as m; "
      "print(m(seed=0, descriptor='spin'))\"`"),
