@@ -336,6 +336,52 @@ def _progress_line(it, n_ok, rms, step_deg, exact):
 
 
 _WARM_START = True  # the correspondence search starts from the last turn's pairs (a probe knob; same answers)
+# certified correspondence cache (grid path): the K nearest target points of each source point at
+# the position of its last search; a later turn takes its nearest from them when the certificate
+# holds (see _cache_answer) and searches only the other rows (0: off, the plain search every turn;
+# a probe knob). _CACHE_STEP (radians): the cache also serves the approximate phase once a rotation
+# step is below it (exact answers there: not bit-identical to the approximate search's); 0: exact
+# phase only
+_CACHE_K = 4
+_CACHE_STEP = 0.01
+
+
+def _cache_answer(spts, order, pos, pc, rad, p, gate):
+    """Nearest target point of each row from its cached candidates, and whether that is certified exact.
+
+    ``pos`` (N, K): the sorted positions (in the index) of the K nearest target points found for the
+    row at ``pc`` (N, 3) (-1: none); ``rad`` (N,): the K-th distance there (the gate when fewer than
+    K lay within it; -inf: no cache). Every target point outside the cache is at least ``rad`` from
+    ``pc``, so at least ``rad - |p - pc|`` from ``p``: when the nearest cached distance ``d1`` (or the
+    gate) is below that, with a relative margin of 64 ulp for rounding, the cached nearest is the exact
+    nearest and every target point at its distance is cached. Ties go to the smallest sorted
+    position, the search's rule for k = 1. Distances as the search computes them. Returns
+    ``(idx (N,), d2 (N,), certified (N,))`` (beyond the gate: -1, inf).
+    """
+    eps = jnp.finfo(p.dtype).eps
+    ok = pos >= 0
+    pp = jnp.where(ok, pos, 0)
+    dx, dy, dz = (spts[:, i][pp] - p[:, i:i + 1] for i in range(3))
+    d2 = jnp.where(ok, (dx * dx + dy * dy) + dz * dz, jnp.inf)
+    v = jnp.min(d2, axis=1)
+    big = jnp.iinfo(jnp.int32).max
+    bp = jnp.min(jnp.where(ok & (d2 == v[:, None]), pos, big), axis=1)
+    delta = jnp.sqrt(jnp.sum((p - pc) ** 2, -1))
+    m = 64 * eps
+    lim = rad * (1 - m) - delta * (1 + m)
+    cert = jnp.minimum(jnp.sqrt(v), gate) * (1 + m) < lim
+    miss = (v > gate * gate) | (bp == big)
+    idx = jnp.where(miss, -1, order[jnp.clip(bp, 0, order.shape[0] - 1)])
+    return idx, jnp.where(miss, jnp.inf, v), cert
+
+
+def _block_bound(g: GridIndex, q):
+    """Distance from each query to the faces of its 27-cell block of the index ``g`` (the search's
+    first-pass bound, :meth:`GridIndex.runs` with ring 1): every point closer lies in the block."""
+    u = (q - g.lo) / g.h
+    c = jnp.clip(jnp.floor(u), -2, (g.dims + 1).astype(u.dtype))
+    face = jnp.minimum(u - (c - 1), (c + 2) - u)
+    return jnp.maximum(jnp.min(face, axis=-1) * g.h, 0.0)
 
 
 # At top level (an eager call of icp) the program compiles with FAST_COMPILE (XLA:CPU's older loop
@@ -386,9 +432,12 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     k_self = {"point_to_point": 2, "point_to_plane": 2 if has_normals else max(2, normal_k),
               "gicp": max(2, cov_k)}[method]
     need_self = method != "point_to_point" or inlier_dist is None
-    kmax = k_self if need_self else 1
-    n_q = max(n_src, n_tgt) if need_self else n_src
     brute = n_src * n_tgt <= _BRUTE_LIMIT
+    # the certified cache's width: the grid path, point-to-point only (point-to-plane and GICP stop
+    # after ~7 iterations, too few turns to pay for the cache's first, ck-wide search; measured)
+    ck = _CACHE_K if not brute and method == "point_to_point" else 0
+    kmax = max(k_self if need_self else 1, ck)
+    n_q = max(n_src, n_tgt) if need_self else n_src
     # GICP also needs the source's own neighbours (its covariances): the source's index (or brute
     # force blocks) is built like the target's, both padded to n_q rows, and the one search program
     # reads the structure picked by a traced ``which`` (0 target, 1 source) -- one compiled search
@@ -420,6 +469,10 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             return jnp.where(miss, -1, idx), jnp.where(miss, jnp.inf, d2)
     else:
         index_all = structures(lambda x, v: build_index(x, v, k=10, coarse=True))
+        if ck:  # the target's index: its points in sorted order, and the sorted position of each point
+            g_t = pick(index_all, 0)
+            inv_order = jnp.zeros(g_t.order.shape, jnp.int32).at[g_t.order].set(
+                jnp.arange(g_t.order.shape[0], dtype=jnp.int32))
 
         def nearest(x, k_used, n_rows, approx, gate, which=0, warm=None):
             # the fallback passes in one looped body: ~18 % less compile, ~8 % more run time at
@@ -454,10 +507,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
 
     gate = jnp.where(jnp.isfinite(max_corr), max_corr, jnp.inf)
 
-    def correspond(idx, d2):
+    def correspond(j, d2):
         # pairs beyond the gate are dropped below: the grid need not search past it (far queries
         # of a partial target fell through to brute force: 20x on a model against a one-sided scan)
-        j, d2 = idx[:n_src, 0], d2[:n_src, 0]
         ok = sv & (j >= 0) & (d2 <= max_corr**2)
 
         def trim(ok):  # keep the ceil(overlap * n_ok) smallest distances
@@ -501,15 +553,89 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     # come from exact correspondences (the evaluation turn is exact). A first turn (``first``)
     # searches the target's own neighbours instead and only sets ``aux`` and the inlier distance.
     def body(st):
-        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl, src_self, cs, hist, jprev = st
+        (it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl, src_self, cs,
+         hist, jprev, cache) = st
         stop = ~first & (done | (bad != OK) | (it >= max_iterations))
         p = src @ r.T + t
         # first turns: the source's own neighbours (GICP only), then the target's; then the pairs
         self_x = jnp.where(src_self, pad_rows(src), pad_rows(tgt)) if two else pad_rows(tgt)
         self_n = jnp.where(src_self, n_src, n_tgt) if two else n_tgt
-        idx, d2 = nearest(jnp.where(first, self_x, pad_rows(p)), jnp.where(first, k_self, 1),
-                          jnp.where(first, self_n, n_src), ~first & ~exact & ~stop, jnp.where(first, jnp.inf, gate),
-                          (first & src_self).astype(jnp.int32), jnp.where(first, -1, jprev) if _WARM_START else None)
+        x_in, k_in, n_in = pad_rows(p), 1, n_src
+        if ck:
+            # a cache turn (exact phase, or approximate once a step fell below _CACHE_STEP): rows whose
+            # cached nearest is certified are answered from the cache, the others (compacted to the
+            # front) are searched for their ck nearest, exactly, which refresh their cache rows
+            c_on = cache[-1]
+            cache_turn = ~first & (c_on | exact)
+            approx_now = ~exact & ~stop
+
+            def check(_):
+                a_idx, a_d2, cert = _cache_answer(g_t.spts, g_t.order, *cache[:3], p, gate)
+                # approximate phase: the search's answer is the nearest of the query's 27-cell block;
+                # the cached (exact) nearest is that answer when it lies strictly inside the block
+                inside = jnp.sqrt(a_d2) < _block_bound(g_t, p) * (1 - 64 * jnp.finfo(dtype).eps)
+                cert = cert & (~approx_now | inside | (a_idx < 0))
+                unc = ~cert
+                n_unc = jnp.sum(unc).astype(jnp.int32)
+                rows = jnp.nonzero(unc, size=n_src, fill_value=n_src)[0].astype(jnp.int32)
+                return a_idx, a_d2, rows, n_unc
+
+            def no_check(_):
+                return (jnp.full((n_src,), -1, jnp.int32), jnp.full((n_src,), jnp.inf, dtype),
+                        jnp.full((n_src,), n_src, jnp.int32), jnp.int32(0))
+
+            a_idx, a_d2, rows, n_unc = jax.lax.cond(cache_turn, check, no_check, None)
+            rows_c = jnp.minimum(rows, n_src - 1)
+            x_in = jnp.where(cache_turn, pad_rows(p[rows_c]), x_in)
+            n_in = jnp.where(cache_turn, n_unc, n_src)
+            k_in = jnp.where(cache_turn, ck, 1)
+            warm_in = jnp.where(cache_turn, -1, jprev)
+            approx_in = approx_now & ~cache_turn
+        else:
+            cache_turn, warm_in, approx_in = jnp.bool_(False), jprev, ~exact & ~stop
+
+        def search(_):
+            return nearest(jnp.where(first, self_x, x_in), jnp.where(first, k_self, k_in),
+                           jnp.where(first, self_n, n_in), ~first & approx_in,
+                           jnp.where(first, jnp.inf, gate), (first & src_self).astype(jnp.int32),
+                           jnp.where(first, -1, warm_in) if _WARM_START else None)
+
+        if ck:  # every row certified: no search at all
+            searching = ~cache_turn | (n_unc > 0)
+            idx, d2 = jax.lax.cond(searching, search, lambda _: (jnp.full((n_q, kmax), -1, jnp.int32),
+                                                                 jnp.full((n_q, kmax), jnp.inf, dtype)), None)
+        else:
+            idx, d2 = search(None)
+        if ck:
+            live = jnp.arange(n_src) < n_unc
+            at = jnp.where(live, rows, n_src)  # the searched rows' places (n_src: dropped)
+            cached = cache[:-1]
+
+            def merge(_):
+                """The searched rows' ck nearest into their cache rows; their nearest (the k = 1 tie rule:
+                the smallest sorted position among equal distances) into the answers."""
+                qi, qd = idx[:n_src, :ck], d2[:n_src, :ck]
+                qpos = jnp.where(qi >= 0, inv_order[jnp.maximum(qi, 0)], -1)
+                big = jnp.iinfo(jnp.int32).max
+                bp = jnp.min(jnp.where((qpos >= 0) & (qd == qd[:, :1]), qpos, big), axis=1)
+                j0 = jnp.where(bp == big, -1, g_t.order[jnp.clip(bp, 0, g_t.order.shape[0] - 1)])
+                rad = jnp.where(jnp.isfinite(qd[:, -1]), jnp.sqrt(qd[:, -1]), gate)
+                c2 = (cached[0].at[at].set(qpos, mode="drop"), cached[1].at[at].set(x_in[:n_src], mode="drop"),
+                      cached[2].at[at].set(rad, mode="drop"))
+                return (a_idx.at[at].set(j0, mode="drop"), a_d2.at[at].set(qd[:, 0], mode="drop")) + c2
+
+            def searched(_):
+                return (idx[:n_src, 0], d2[:n_src, 0]) + tuple(cached)
+
+            def certified(_):
+                return (a_idx, a_d2) + tuple(cached)
+
+            outs = jax.lax.switch(jnp.where(cache_turn, jnp.where(n_unc > 0, 1, 2), 0),
+                                  [searched, merge, certified], None)
+            j_c, d2_c = outs[:2]
+            cache = tuple(outs[2:]) + (c_on,)
+        else:
+            j_c, d2_c = idx[:n_src, 0], d2[:n_src, 0]
 
         def first_turn(_):
             if two:
@@ -527,7 +653,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             return st[:13] + (jnp.bool_(False), aux2, inl2) + st[16:]
 
         def turn(_):
-            j, d2c, ok = correspond(idx, d2)
+            j, d2c, ok = correspond(j_c, d2_c)
             r2, t2, small, bad2, n2, dang = step(r, t, p, j, ok, aux, cs)
             # the approximate phase also ends when it stops paying: the mean squared distance no
             # longer falls (approximate pairs can cycle by ~1e-3 deg and never make the step small)
@@ -550,6 +676,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                            & (jnp.linalg.norm(t2 - ht, axis=-1) <= trans_tol))
             cycled = (since2 >= _CYCLE_ITERS) & ((wmax2 <= _CYCLE_TOL) | (back & (wmax2 <= _CYCLE_MAX)))
             upd = ~stop & (bad2 == OK)
+            cache2 = cache if not ck else cache[:-1] + (cache[-1] | (dang < _CACHE_STEP),)
             keep = exact & upd  # the history holds exact-phase poses only (NaN: none yet)
             hist2 = (jnp.where(keep, jnp.concatenate([hr[1:], r2[None]]), jnp.where(exact, hr, jnp.nan)),
                      jnp.where(keep, jnp.concatenate([ht[1:], t2[None]]), jnp.where(exact, ht, jnp.nan)))
@@ -561,7 +688,8 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
                     jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
                     jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled,
-                    best2, since2, wmax2, first, aux, inl, src_self, cs, hist2, idx[:, 0])
+                    best2, since2, wmax2, first, aux, inl, src_self, cs, hist2,
+                    jnp.concatenate([j_c, idx[n_src:, 0]]) if ck else idx[:, 0], cache2)
 
         return jax.lax.cond(first, first_turn, turn, None)
 
@@ -571,7 +699,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             jnp.bool_(need_self), aux0, inlier0, jnp.bool_(two),
             jnp.zeros((n_src, 3, 3) if two else (1,), dtype),
             (jnp.full((_CYCLE_ITERS, 3, 3), jnp.nan, dtype), jnp.full((_CYCLE_ITERS, 3), jnp.nan, dtype)),
-            jnp.full((n_q,), -1, jnp.int32))
+            jnp.full((n_q,), -1, jnp.int32),
+            (jnp.full((n_src, ck), -1, jnp.int32), jnp.zeros((n_src, 3), dtype), jnp.full((n_src,), -jnp.inf, dtype),
+             jnp.bool_(False)) if ck else ())
     out = jax.lax.while_loop(cond, body, init)
     it, r, t, done, bad, n_ok, d2a, ok = out[:8]
     inlier_dist = out[15]
