@@ -1,14 +1,14 @@
 """The certified correspondence cache of ``fsjax.fit.icp``: the whole call with and without it, one process.
 
-Each variant (``--variants``: ``off`` = ``_CACHE_K = 0``, the plain search every turn; ``K:step`` =
-``_CACHE_K = K``, ``_CACHE_STEP = step`` radians) of each method is compiled ahead of
+Each variant (``--variants``: ``off`` = ``_CACHE_K = 0``, the plain search every turn; ``K:step:sub`` =
+``_CACHE_K = K``, ``_CACHE_STEP = step`` radians, ``_SUBSET = sub``, 1 if not given) of each method is compiled ahead of
 time in this process (``jax.jit(..., compiler_options=FAST_COMPILE)``: what an eager ``icp`` call
 compiles; ``--default-options``: XLA's default, a user's ``jit``), then all run interleaved
 (round robin), ``--repeats`` times. Prints per variant the compile CPU seconds, the median wall and
 process-CPU time of a call, the iterations, and whether every output leaf is bit-identical to the
 first variant's (else the largest differences of R, t, rms_len and the rotation error).
 
-    python benchmarks/ab_icp_cache.py [--n 20000] [--x64] [--repeats 5] [--variants off,4:0.01]
+    python benchmarks/ab_icp_cache.py [--n 20000] [--x64] [--repeats 5] [--variants off,4:0.01,4:0.01:4]
         [--methods point_to_point,point_to_plane,gicp] [--batch 64 --batch-n 5000]
 
 ``--batch B``: instead, ``jax.jit(jax.vmap(icp))`` over B point-to-plane problems of ``--batch-n``
@@ -47,10 +47,10 @@ def set_variant(v):
     # after the first reuses the first variant's program
     jax.clear_caches()
     if v == "off":
-        icp_mod._CACHE_K, icp_mod._CACHE_STEP = 0, 0.0
+        icp_mod._CACHE_K, icp_mod._CACHE_STEP, icp_mod._SUBSET = 0, 0.0, 1
     else:
-        k, _, step = v.partition(":")
-        icp_mod._CACHE_K, icp_mod._CACHE_STEP = int(k), float(step or 0.0)
+        k, step, sub = (v.split(":") + ["", ""])[:3]
+        icp_mod._CACHE_K, icp_mod._CACHE_STEP, icp_mod._SUBSET = int(k), float(step or 0.0), int(sub or 1)
 
 
 def batched_scene(b, n, dt):
@@ -74,7 +74,7 @@ def main():
     ap.add_argument("--n", type=int, default=20000)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--x64", action="store_true")
-    ap.add_argument("--variants", default="off,4:0.01")
+    ap.add_argument("--variants", default="off,4:0.01,4:0.01:4")
     ap.add_argument("--methods", default="point_to_point,point_to_plane,gicp")
     ap.add_argument("--default-options", action="store_true")
     ap.add_argument("--batch", type=int, default=0)
@@ -108,7 +108,7 @@ def main():
         exe[key] = f.lower(*args).compile()
         comp[key] = time.process_time() - t0
         outs[key] = jax.device_get(exe[key](*args))
-    set_variant("4:0.01")  # the shipped knobs
+    set_variant("4:0.01:4")  # the shipped knobs
     wall = {k: [] for k in cases}
     cpu = {k: [] for k in cases}
     keys = list(cases)

@@ -344,6 +344,8 @@ _WARM_START = True  # the correspondence search starts from the last turn's pair
 # phase only
 _CACHE_K = 4
 _CACHE_STEP = 0.01
+# approximate turns on every _SUBSET-th source point (grid path; 1: all points; a probe knob)
+_SUBSET = 4
 
 
 def _cache_answer(spts, order, pos, pc, rad, p, gate):
@@ -437,6 +439,14 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     # after ~7 iterations, too few turns to pay for the cache's first, ck-wide search; measured)
     ck = _CACHE_K if not brute and method == "point_to_point" else 0
     kmax = max(k_self if need_self else 1, ck)
+    # approximate turns on a strided subset of the source (Rusinkiewicz & Levoy 2001: sampling; the
+    # exact turns use every point): its rows first in the query array, a static permutation
+    sub = _SUBSET if not brute and n_src >= 4 * _SUBSET else 1
+    if sub > 1:
+        keep_rows = np.arange(n_src) % sub == 0
+        perm_sub = np.concatenate([np.nonzero(keep_rows)[0], np.nonzero(~keep_rows)[0]]).astype(np.int32)
+        n_sub = int(keep_rows.sum())
+        inv_sub = np.argsort(perm_sub).astype(np.int32)
     n_q = max(n_src, n_tgt) if need_self else n_src
     # GICP also needs the source's own neighbours (its covariances): the source's index (or brute
     # force blocks) is built like the target's, both padded to n_q rows, and the one search program
@@ -593,6 +603,11 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             approx_in = approx_now & ~cache_turn
         else:
             cache_turn, warm_in, approx_in = jnp.bool_(False), jprev, ~exact & ~stop
+        if sub > 1:  # an approximate turn: the strided subset of the source (its rows first), searched alone
+            sub_turn = ~first & approx_in
+            x_in = jnp.where(sub_turn, pad_rows(p[perm_sub]), x_in)
+            n_in = jnp.where(sub_turn, n_sub, n_in)
+            warm_in = jnp.where(sub_turn, jnp.concatenate([jprev[perm_sub], jprev[n_src:]]), warm_in)
 
         def search(_):
             return nearest(jnp.where(first, self_x, x_in), jnp.where(first, k_self, k_in),
@@ -606,6 +621,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                                                                  jnp.full((n_q, kmax), jnp.inf, dtype)), None)
         else:
             idx, d2 = search(None)
+        j_s, d2_s = idx[:n_src, 0], d2[:n_src, 0]
+        if sub > 1:  # back in source order; the rows outside the subset: no pair (-1, inf)
+            j_s, d2_s = jnp.where(sub_turn, j_s[inv_sub], j_s), jnp.where(sub_turn, d2_s[inv_sub], d2_s)
         if ck:
             live = jnp.arange(n_src) < n_unc
             at = jnp.where(live, rows, n_src)  # the searched rows' places (n_src: dropped)
@@ -625,7 +643,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                 return (a_idx.at[at].set(j0, mode="drop"), a_d2.at[at].set(qd[:, 0], mode="drop")) + c2
 
             def searched(_):
-                return (idx[:n_src, 0], d2[:n_src, 0]) + tuple(cached)
+                return (j_s, d2_s) + tuple(cached)
 
             def certified(_):
                 return (a_idx, a_d2) + tuple(cached)
@@ -635,7 +653,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             j_c, d2_c = outs[:2]
             cache = tuple(outs[2:]) + (c_on,)
         else:
-            j_c, d2_c = idx[:n_src, 0], d2[:n_src, 0]
+            j_c, d2_c = j_s, d2_s
 
         def first_turn(_):
             if two:
@@ -689,7 +707,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                     jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
                     jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled,
                     best2, since2, wmax2, first, aux, inl, src_self, cs, hist2,
-                    jnp.concatenate([j_c, idx[n_src:, 0]]) if ck else idx[:, 0], cache2)
+                    jnp.concatenate([j_c, idx[n_src:, 0]]), cache2)
 
         return jax.lax.cond(first, first_turn, turn, None)
 
