@@ -66,9 +66,26 @@ the first iterations; exact, equal to ``cKDTree``). On the grid the loop has two
 the index's approximate mode (:func:`fsjax.ops.query_knn` ``approx=True``: a source point far
 from the target may get a target point of the first cell block that holds one, not the nearest),
 until the increment is small; then exact nearest neighbours until the increment is small again.
-The returned pose, ``rms_len`` and ``inlier_fraction`` come from exact correspondences; the
-iteration count includes both phases. Small problems (``N M <= 2**22``) use the
-same module's blocked brute force instead (same answers, cheaper to compile). No (N, M) array is
+From 16,384 source points the approximate turns search every 4th source point only
+(``_SUBSET``; Rusinkiewicz & Levoy 2001, "Efficient variants of the ICP algorithm", 3DIM: sampling),
+the exact turns all of them: at 20,000 bunny points the first far search, the costliest turn, shrinks
+4x (the whole call 0.60x / 0.77x / 0.91x CPU for point-to-point / point-to-plane / GICP, float32);
+the registration is the same within 4.5e-7 (point-to-plane, GICP) / 6.3e-5 (point-to-point, whose
+float32 fixed point drifts) in R, with 1-2 more iterations (point-to-point: 42 instead of 43; float64
+45 instead of the cap, 50) (``docs/benchmarks_icp.md``).
+Point-to-point (tens of near turns) can also keep a certified correspondence cache (``_CACHE_K = 4``;
+off by default: at 20,000 points 0.79x the run time, +22 % compile): each source point's
+4 nearest target points at ``p_c``, where it was last searched, and the 4th distance ``d_4``. Every
+other target point is at least ``d_4 - |p - p_c|`` from the point's new position ``p``, so when the
+nearest cached distance is below that (a 64 ulp margin for rounding; with a distance gate, the gate
+below it suffices) the cached nearest is the exact nearest, ties included (every point at that
+distance is cached; ties go to the smallest sorted position, the search's own rule). Only the rows
+refused are searched (compacted, 4 nearest, exact, refreshing their cache), and a turn whose rows
+are all certified searches nothing; the cache starts in the exact phase (``_CACHE_STEP``: also the
+approximate phase once a step is below it; measured worse with the subset above). Outputs with and
+without it are bit-identical (its answers are the exact search's). The returned pose, ``rms_len``
+and ``inlier_fraction`` come from exact correspondences; the iteration count includes both phases.
+Small problems (``N M <= 2**22``) use the same module's blocked brute force instead (same answers, cheaper to compile). No (N, M) array is
 formed anywhere. One search program serves every query of the call: the loop's first turn
 searches the target's own ``normal_k`` / ``cov_k`` / 2 nearest points (normals, covariances,
 spacing), the other turns the k = 1 correspondences; the number of neighbours and of query rows
@@ -336,16 +353,22 @@ def _progress_line(it, n_ok, rms, step_deg, exact):
 
 
 _WARM_START = True  # the correspondence search starts from the last turn's pairs (a probe knob; same answers)
-# certified correspondence cache (grid path): the K nearest target points of each source point at
-# the position of its last search; a later turn takes its nearest from them when the certificate
-# holds (see _cache_answer) and searches only the other rows (0: off, the plain search every turn;
-# a probe knob). _CACHE_STEP (radians): the cache also serves the approximate phase once a rotation
-# step is below it (exact answers there: not bit-identical to the approximate search's); 0: exact
-# phase only
-_CACHE_K = 4
-_CACHE_STEP = 0.01
-# approximate turns on every _SUBSET-th source point (grid path; 1: all points; a probe knob)
+# certified correspondence cache (grid path, point-to-point): the _CACHE_K nearest target points of
+# each source point at the position of its last search; a later turn takes its nearest from them
+# when the certificate holds (see _cache_answer) and searches only the other rows (0: off, the plain
+# search every turn; a probe knob). _CACHE_STEP (radians): the cache also serves the approximate
+# phase once a rotation step is below it (0: the exact phase only). There a certified row must also
+# lie inside its 27-cell block (then the approximate search's answer is the same point); the rows
+# searched get exact answers, which differ from the approximate search's only where the nearest lies
+# outside that block (the bunny at 20,000 points: none, outputs bit-identical)
+# Off by default: at 20,000 bunny points it makes point-to-point 0.79x in run time (CPU, float32, with
+# _SUBSET) but its compile +22 % (4.0 -> 4.9 s CPU; the brief's limit is ~10 %); set 4 to use it
+_CACHE_K = 0
+_CACHE_STEP = 0.0
+# approximate turns on every _SUBSET-th source point (grid path, from _SUBSET_FROM source points;
+# 1: all points; probe knobs)
 _SUBSET = 4
+_SUBSET_FROM = 16384
 
 
 def _cache_answer(spts, order, pos, pc, rad, p, gate):
@@ -441,7 +464,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     kmax = max(k_self if need_self else 1, ck)
     # approximate turns on a strided subset of the source (Rusinkiewicz & Levoy 2001: sampling; the
     # exact turns use every point): its rows first in the query array, a static permutation
-    sub = _SUBSET if not brute and n_src >= 4 * _SUBSET else 1
+    # (from 16,384 source points: 64 problems of 5,000 bunny points took 8.4 -> 10.8 iterations on
+    # average and no less time, while at 20,000 the far turns' search is most of a call)
+    sub = _SUBSET if not brute and n_src >= _SUBSET_FROM else 1
     if sub > 1:
         keep_rows = np.arange(n_src) % sub == 0
         perm_sub = np.concatenate([np.nonzero(keep_rows)[0], np.nonzero(~keep_rows)[0]]).astype(np.int32)
@@ -583,8 +608,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                 a_idx, a_d2, cert = _cache_answer(g_t.spts, g_t.order, *cache[:3], p, gate)
                 # approximate phase: the search's answer is the nearest of the query's 27-cell block;
                 # the cached (exact) nearest is that answer when it lies strictly inside the block
-                inside = jnp.sqrt(a_d2) < _block_bound(g_t, p) * (1 - 64 * jnp.finfo(dtype).eps)
-                cert = cert & (~approx_now | inside | (a_idx < 0))
+                if _CACHE_STEP > 0:
+                    inside = jnp.sqrt(a_d2) < _block_bound(g_t, p) * (1 - 64 * jnp.finfo(dtype).eps)
+                    cert = cert & (~approx_now | inside | (a_idx < 0))
                 unc = ~cert
                 n_unc = jnp.sum(unc).astype(jnp.int32)
                 rows = jnp.nonzero(unc, size=n_src, fill_value=n_src)[0].astype(jnp.int32)
@@ -694,7 +720,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                            & (jnp.linalg.norm(t2 - ht, axis=-1) <= trans_tol))
             cycled = (since2 >= _CYCLE_ITERS) & ((wmax2 <= _CYCLE_TOL) | (back & (wmax2 <= _CYCLE_MAX)))
             upd = ~stop & (bad2 == OK)
-            cache2 = cache if not ck else cache[:-1] + (cache[-1] | (dang < _CACHE_STEP),)
+            cache2 = cache if not ck or _CACHE_STEP <= 0 else cache[:-1] + (cache[-1] | (dang < _CACHE_STEP),)
             keep = exact & upd  # the history holds exact-phase poses only (NaN: none yet)
             hist2 = (jnp.where(keep, jnp.concatenate([hr[1:], r2[None]]), jnp.where(exact, hr, jnp.nan)),
                      jnp.where(keep, jnp.concatenate([ht[1:], t2[None]]), jnp.where(exact, ht, jnp.nan)))

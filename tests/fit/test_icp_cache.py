@@ -133,10 +133,10 @@ def test_icp_with_the_cache_equals_icp_without(monkeypatch, dtype):
 @pytest.mark.slow
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_icp_on_a_subset_in_the_approximate_phase(monkeypatch, dtype):
-    """Approximate turns on every 4th source point (``_SUBSET = 4``) against all points (``1``): not
+    """Approximate turns on every 4th source point (``_SUBSET = 4``, forced below ``_SUBSET_FROM``) against all points (``1``): not
     the same trajectory, the same registration: both converge, rotation error to the truth below
     0.01 deg (the null, no ICP: 5 deg), poses within 1e-4, iterations within 4 of each other."""
-    (full, part), errs, _ = _two_runs(monkeypatch, dtype, "_SUBSET", (1, 4), {"_CACHE_K": 4})
+    (full, part), errs, _ = _two_runs(monkeypatch, dtype, "_SUBSET", (1, 4), {"_CACHE_K": 4, "_SUBSET_FROM": 0})
     assert bool(full.converged) and bool(part.converged)
     assert max(errs) < 0.01
     np.testing.assert_allclose(np.asarray(part.R), np.asarray(full.R), rtol=0, atol=1e-4)
