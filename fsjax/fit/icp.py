@@ -72,7 +72,8 @@ the exact turns all of them: at 20,000 bunny points the first far search, the co
 4x (the whole call 0.60x / 0.77x / 0.91x CPU for point-to-point / point-to-plane / GICP, float32);
 the registration is the same within 4.5e-7 (point-to-plane, GICP) / 6.3e-5 (point-to-point, whose
 float32 fixed point drifts) in R, with 1-2 more iterations (point-to-point: 42 instead of 43; float64
-45 instead of the cap, 50) (``docs/benchmarks_icp.md``).
+45 instead of the cap, 50) (``docs/benchmarks_icp.md``). A subset turn with too few pairs for a step
+(a distance gate that few source points meet) makes none and hands over to every point.
 Point-to-point (tens of near turns) can also keep a certified correspondence cache (``_CACHE_K = 4``;
 off by default: at 20,000 points 0.79x the run time, +22 % compile): each source point's
 4 nearest target points at ``p_c``, where it was last searched, and the 4th distance ``d_4``. Every
@@ -699,6 +700,11 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         def turn(_):
             j, d2c, ok = correspond(j_c, d2_c)
             r2, t2, small, bad2, n2, dang = step(r, t, p, j, ok, aux, cs)
+            if sub > 1:  # the subset gave too few pairs (or no step): no step; the next turn, every point
+                few = sub_turn & (bad2 != OK)
+                r2, t2, bad2, small = jnp.where(few, r, r2), jnp.where(few, t, t2), jnp.where(few, OK, bad2), small & ~few
+            else:
+                few = jnp.bool_(False)
             # the approximate phase also ends when it stops paying: the mean squared distance no
             # longer falls (approximate pairs can cycle by ~1e-3 deg and never make the step small)
             ms = jnp.sum(jnp.where(ok, d2c, 0.0)) / jnp.maximum(jnp.sum(ok), 1)
@@ -731,7 +737,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                     _progress_line, it, n_pairs, rms, rotation_angle_deg(r2 @ r.T), ~(~exact & ~stop)))
             return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
                     jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
-                    jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled,
+                    jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled | few,
                     best2, since2, wmax2, first, aux, inl, src_self, cs, hist2,
                     jnp.concatenate([j_c, idx[n_src:, 0]]), cache2)
 

@@ -142,3 +142,38 @@ def test_icp_on_a_subset_in_the_approximate_phase(monkeypatch, dtype):
     np.testing.assert_allclose(np.asarray(part.R), np.asarray(full.R), rtol=0, atol=1e-4)
     assert abs(int(part.iterations) - int(full.iterations)) <= 4
     assert float(part.inlier_fraction) == float(full.inlier_fraction) == 1.0
+
+
+def test_subset_with_too_few_pairs_goes_on_with_every_point(monkeypatch):
+    """A source of which only 12 points lie within the distance gate of the target: the subset (every
+    4th point: 3 of them at most) may give too few pairs for a step; the turn then makes no step and
+    the next one searches every point, so the fit ends as without the subset (not reason 2; without
+    this rule: reason 2 with 1 pair, checked on the branch before it)."""
+    monkeypatch.setattr(icp_mod, "_BRUTE_LIMIT", 0)
+    monkeypatch.setattr(icp_mod, "_SUBSET_FROM", 0)
+    tgt = np.asarray(surface_points("bunny", 500, 0))
+    rng = np.random.default_rng(3)
+    near = tgt[rng.choice(500, 12, replace=False)] + 0.0005
+    src = tgt[rng.choice(500, 500)] + np.array([1.0, 0.0, 0.0])  # 1 m away: beyond the gate
+    src[[0, 1, 2, 3, 5, 6, 7, 9, 10, 11, 13, 14]] = near  # one of them at a row of the subset (every 4th)
+    res = {}
+    try:
+        for k in (1, 4):
+            monkeypatch.setattr(icp_mod, "_SUBSET", k)
+            for f in (icp_mod._icp_core.fast, icp_mod._icp_core.plain):
+                f.clear_cache()
+            res[k] = jax.device_get(icp(jnp.asarray(src), jnp.asarray(tgt), method="point_to_point",
+                                        max_correspondence_distance=0.01, min_inlier_fraction=0.0))
+    finally:
+        monkeypatch.undo()
+        for f in (icp_mod._icp_core.fast, icp_mod._icp_core.plain):
+            f.clear_cache()
+    kept = np.arange(500) % 4 == 0
+    near_rows = np.linalg.norm(src - tgt[np.argmin(((src[:, None] - tgt[None]) ** 2).sum(-1), 1)], axis=1) < 0.01
+    print(f"near rows {near_rows.sum()}, in the subset {np.sum(near_rows & kept)}; reasons "
+          f"{int(res[1].reason)} / {int(res[4].reason)}, pairs {int(res[1].n_correspondences)} / "
+          f"{int(res[4].n_correspondences)}")
+    assert np.sum(near_rows & kept) < 3 <= near_rows.sum()  # the subset alone is too few for point-to-point
+    assert int(res[1].reason) == int(res[4].reason) == 0
+    assert int(res[4].n_correspondences) == int(res[1].n_correspondences) == near_rows.sum()
+    np.testing.assert_allclose(res[4].R, res[1].R, rtol=0, atol=1e-6)
