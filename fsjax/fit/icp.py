@@ -86,8 +86,8 @@ are all certified searches nothing; the cache starts in the exact phase (``_CACH
 approximate phase once a step is below it; measured worse with the subset above). Outputs with and
 without it are bit-identical (its answers are the exact search's). The returned pose, ``rms_len``
 and ``inlier_fraction`` come from exact correspondences; the iteration count includes both phases.
-Small problems (``N M <= 2**22``) use the same module's blocked brute force instead (same answers, cheaper to compile). No (N, M) array is
-formed anywhere. One search program serves every query of the call: the loop's first turn
+Small problems (``N M <= 2**22``) use the same module's blocked brute force instead (same answers,
+cheaper to compile). No (N, M) array is formed anywhere. One search program serves every query of the call: the loop's first turn
 searches the target's own ``normal_k`` / ``cov_k`` / 2 nearest points (normals, covariances,
 spacing), the other turns the k = 1 correspondences; the number of neighbours and of query rows
 are traced (a selection as wide as the first turn's k, a query array ``max(N, M)`` rows long), so
