@@ -188,6 +188,10 @@ def ab(a, dt):
             icp_mod._WARM_START = warm
             _search._S2_ONE = 2 if warm else 8  # "on": the three changes of issue 12's iteration work
             _search._REDO_SKIP = warm
+            # the knobs are read while tracing, and fsjax.fit.icp._icp_core is a jit of its own whose
+            # traced program jax caches by argument shapes, not by module globals: without this every
+            # variant after the first reused the first one's program (found 2026-12-05, branch icpcache)
+            jax.clear_caches()
             t0 = time.process_time()
             opts = {"compiler_options": FAST_COMPILE} if a.fast else {}
             exe = jax.jit(lambda s, t, m=m: icp(s, t, method=m, max_iterations=50), **opts).lower(src_m, tgt_m).compile()

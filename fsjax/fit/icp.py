@@ -66,10 +66,28 @@ the first iterations; exact, equal to ``cKDTree``). On the grid the loop has two
 the index's approximate mode (:func:`fsjax.ops.query_knn` ``approx=True``: a source point far
 from the target may get a target point of the first cell block that holds one, not the nearest),
 until the increment is small; then exact nearest neighbours until the increment is small again.
-The returned pose, ``rms_len`` and ``inlier_fraction`` come from exact correspondences; the
-iteration count includes both phases. Small problems (``N M <= 2**22``) use the
-same module's blocked brute force instead (same answers, cheaper to compile). No (N, M) array is
-formed anywhere. One search program serves every query of the call: the loop's first turn
+From 16,384 source points the approximate turns search every 4th source point only
+(``_SUBSET``; Rusinkiewicz & Levoy 2001, "Efficient variants of the ICP algorithm", 3DIM: sampling),
+the exact turns all of them: at 20,000 bunny points the first far search, the costliest turn, shrinks
+4x (the whole call 0.60x / 0.77x / 0.91x CPU for point-to-point / point-to-plane / GICP, float32);
+the registration is the same within 4.5e-7 (point-to-plane, GICP) / 6.3e-5 (point-to-point, whose
+float32 fixed point drifts) in R, with 1-2 more iterations (point-to-point: 42 instead of 43; float64
+45 instead of the cap, 50) (``docs/benchmarks_icp.md``). A subset turn with too few pairs for a step
+(a distance gate that few source points meet) makes none and hands over to every point.
+Point-to-point (tens of near turns) can also keep a certified correspondence cache (``_CACHE_K = 4``;
+off by default: at 20,000 points 0.79x the run time, +22 % compile): each source point's
+4 nearest target points at ``p_c``, where it was last searched, and the 4th distance ``d_4``. Every
+other target point is at least ``d_4 - |p - p_c|`` from the point's new position ``p``, so when the
+nearest cached distance is below that (a 64 ulp margin for rounding; with a distance gate, the gate
+below it suffices) the cached nearest is the exact nearest, ties included (every point at that
+distance is cached; ties go to the smallest sorted position, the search's own rule). Only the rows
+refused are searched (compacted, 4 nearest, exact, refreshing their cache), and a turn whose rows
+are all certified searches nothing; the cache starts in the exact phase (``_CACHE_STEP``: also the
+approximate phase once a step is below it; measured worse with the subset above). Outputs with and
+without it are bit-identical (its answers are the exact search's). The returned pose, ``rms_len``
+and ``inlier_fraction`` come from exact correspondences; the iteration count includes both phases.
+Small problems (``N M <= 2**22``) use the same module's blocked brute force instead (same answers,
+cheaper to compile). No (N, M) array is formed anywhere. One search program serves every query of the call: the loop's first turn
 searches the target's own ``normal_k`` / ``cov_k`` / 2 nearest points (normals, covariances,
 spacing), the other turns the k = 1 correspondences; the number of neighbours and of query rows
 are traced (a selection as wide as the first turn's k, a query array ``max(N, M)`` rows long), so
@@ -336,6 +354,60 @@ def _progress_line(it, n_ok, rms, step_deg, exact):
 
 
 _WARM_START = True  # the correspondence search starts from the last turn's pairs (a probe knob; same answers)
+# certified correspondence cache (grid path, point-to-point): the _CACHE_K nearest target points of
+# each source point at the position of its last search; a later turn takes its nearest from them
+# when the certificate holds (see _cache_answer) and searches only the other rows (0: off, the plain
+# search every turn; a probe knob). _CACHE_STEP (radians): the cache also serves the approximate
+# phase once a rotation step is below it (0: the exact phase only). There a certified row must also
+# lie inside its 27-cell block (then the approximate search's answer is the same point); the rows
+# searched get exact answers, which differ from the approximate search's only where the nearest lies
+# outside that block (the bunny at 20,000 points: none, outputs bit-identical)
+# Off by default: at 20,000 bunny points it makes point-to-point 0.79x in run time (CPU, float32, with
+# _SUBSET) but its compile +22 % (4.0 -> 4.9 s CPU; the brief's limit is ~10 %); set 4 to use it
+_CACHE_K = 0
+_CACHE_STEP = 0.0
+# approximate turns on every _SUBSET-th source point (grid path, from _SUBSET_FROM source points;
+# 1: all points; probe knobs)
+_SUBSET = 4
+_SUBSET_FROM = 16384
+
+
+def _cache_answer(spts, order, pos, pc, rad, p, gate):
+    """Nearest target point of each row from its cached candidates, and whether that is certified exact.
+
+    ``pos`` (N, K): the sorted positions (in the index) of the K nearest target points found for the
+    row at ``pc`` (N, 3) (-1: none); ``rad`` (N,): the K-th distance there (the gate when fewer than
+    K lay within it; -inf: no cache). Every target point outside the cache is at least ``rad`` from
+    ``pc``, so at least ``rad - |p - pc|`` from ``p``: when the nearest cached distance ``d1`` (or the
+    gate) is below that, with a relative margin of 64 ulp for rounding, the cached nearest is the exact
+    nearest and every target point at its distance is cached. Ties go to the smallest sorted
+    position, the search's rule for k = 1. Distances as the search computes them. Returns
+    ``(idx (N,), d2 (N,), certified (N,))`` (beyond the gate: -1, inf).
+    """
+    eps = jnp.finfo(p.dtype).eps
+    ok = pos >= 0
+    pp = jnp.where(ok, pos, 0)
+    dx, dy, dz = (spts[:, i][pp] - p[:, i:i + 1] for i in range(3))
+    d2 = jnp.where(ok, (dx * dx + dy * dy) + dz * dz, jnp.inf)
+    v = jnp.min(d2, axis=1)
+    big = jnp.iinfo(jnp.int32).max
+    bp = jnp.min(jnp.where(ok & (d2 == v[:, None]), pos, big), axis=1)
+    delta = jnp.sqrt(jnp.sum((p - pc) ** 2, -1))
+    m = 64 * eps
+    lim = rad * (1 - m) - delta * (1 + m)
+    cert = jnp.minimum(jnp.sqrt(v), gate) * (1 + m) < lim
+    miss = (v > gate * gate) | (bp == big)
+    idx = jnp.where(miss, -1, order[jnp.clip(bp, 0, order.shape[0] - 1)])
+    return idx, jnp.where(miss, jnp.inf, v), cert
+
+
+def _block_bound(g: GridIndex, q):
+    """Distance from each query to the faces of its 27-cell block of the index ``g`` (the search's
+    first-pass bound, :meth:`GridIndex.runs` with ring 1): every point closer lies in the block."""
+    u = (q - g.lo) / g.h
+    c = jnp.clip(jnp.floor(u), -2, (g.dims + 1).astype(u.dtype))
+    face = jnp.minimum(u - (c - 1), (c + 2) - u)
+    return jnp.maximum(jnp.min(face, axis=-1) * g.h, 0.0)
 
 
 # At top level (an eager call of icp) the program compiles with FAST_COMPILE (XLA:CPU's older loop
@@ -386,9 +458,22 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     k_self = {"point_to_point": 2, "point_to_plane": 2 if has_normals else max(2, normal_k),
               "gicp": max(2, cov_k)}[method]
     need_self = method != "point_to_point" or inlier_dist is None
-    kmax = k_self if need_self else 1
-    n_q = max(n_src, n_tgt) if need_self else n_src
     brute = n_src * n_tgt <= _BRUTE_LIMIT
+    # the certified cache's width: the grid path, point-to-point only (point-to-plane and GICP stop
+    # after ~7 iterations, too few turns to pay for the cache's first, ck-wide search; measured)
+    ck = _CACHE_K if not brute and method == "point_to_point" else 0
+    kmax = max(k_self if need_self else 1, ck)
+    # approximate turns on a strided subset of the source (Rusinkiewicz & Levoy 2001: sampling; the
+    # exact turns use every point): its rows first in the query array, a static permutation
+    # (from 16,384 source points: 64 problems of 5,000 bunny points took 8.4 -> 10.8 iterations on
+    # average and no less time, while at 20,000 the far turns' search is most of a call)
+    sub = _SUBSET if not brute and n_src >= _SUBSET_FROM else 1
+    if sub > 1:
+        keep_rows = np.arange(n_src) % sub == 0
+        perm_sub = np.concatenate([np.nonzero(keep_rows)[0], np.nonzero(~keep_rows)[0]]).astype(np.int32)
+        n_sub = int(keep_rows.sum())
+        inv_sub = np.argsort(perm_sub).astype(np.int32)
+    n_q = max(n_src, n_tgt) if need_self else n_src
     # GICP also needs the source's own neighbours (its covariances): the source's index (or brute
     # force blocks) is built like the target's, both padded to n_q rows, and the one search program
     # reads the structure picked by a traced ``which`` (0 target, 1 source) -- one compiled search
@@ -420,6 +505,10 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             return jnp.where(miss, -1, idx), jnp.where(miss, jnp.inf, d2)
     else:
         index_all = structures(lambda x, v: build_index(x, v, k=10, coarse=True))
+        if ck:  # the target's index: its points in sorted order, and the sorted position of each point
+            g_t = pick(index_all, 0)
+            inv_order = jnp.zeros(g_t.order.shape, jnp.int32).at[g_t.order].set(
+                jnp.arange(g_t.order.shape[0], dtype=jnp.int32))
 
         def nearest(x, k_used, n_rows, approx, gate, which=0, warm=None):
             # the fallback passes in one looped body: ~18 % less compile, ~8 % more run time at
@@ -454,10 +543,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
 
     gate = jnp.where(jnp.isfinite(max_corr), max_corr, jnp.inf)
 
-    def correspond(idx, d2):
+    def correspond(j, d2):
         # pairs beyond the gate are dropped below: the grid need not search past it (far queries
         # of a partial target fell through to brute force: 20x on a model against a one-sided scan)
-        j, d2 = idx[:n_src, 0], d2[:n_src, 0]
         ok = sv & (j >= 0) & (d2 <= max_corr**2)
 
         def trim(ok):  # keep the ceil(overlap * n_ok) smallest distances
@@ -501,15 +589,98 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
     # come from exact correspondences (the evaluation turn is exact). A first turn (``first``)
     # searches the target's own neighbours instead and only sets ``aux`` and the inlier distance.
     def body(st):
-        it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl, src_self, cs, hist, jprev = st
+        (it, r, t, done, bad, n_ok, d2_prev, ok_prev, stop, exact, best, since, wmax, first, aux, inl, src_self, cs,
+         hist, jprev, cache) = st
         stop = ~first & (done | (bad != OK) | (it >= max_iterations))
         p = src @ r.T + t
         # first turns: the source's own neighbours (GICP only), then the target's; then the pairs
         self_x = jnp.where(src_self, pad_rows(src), pad_rows(tgt)) if two else pad_rows(tgt)
         self_n = jnp.where(src_self, n_src, n_tgt) if two else n_tgt
-        idx, d2 = nearest(jnp.where(first, self_x, pad_rows(p)), jnp.where(first, k_self, 1),
-                          jnp.where(first, self_n, n_src), ~first & ~exact & ~stop, jnp.where(first, jnp.inf, gate),
-                          (first & src_self).astype(jnp.int32), jnp.where(first, -1, jprev) if _WARM_START else None)
+        x_in, k_in, n_in = pad_rows(p), 1, n_src
+        if ck:
+            # a cache turn (exact phase, or approximate once a step fell below _CACHE_STEP): rows whose
+            # cached nearest is certified are answered from the cache, the others (compacted to the
+            # front) are searched for their ck nearest, exactly, which refresh their cache rows
+            c_on = cache[-1]
+            cache_turn = ~first & (c_on | exact)
+            approx_now = ~exact & ~stop
+
+            def check(_):
+                a_idx, a_d2, cert = _cache_answer(g_t.spts, g_t.order, *cache[:3], p, gate)
+                # approximate phase: the search's answer is the nearest of the query's 27-cell block;
+                # the cached (exact) nearest is that answer when it lies strictly inside the block
+                if _CACHE_STEP > 0:
+                    inside = jnp.sqrt(a_d2) < _block_bound(g_t, p) * (1 - 64 * jnp.finfo(dtype).eps)
+                    cert = cert & (~approx_now | inside | (a_idx < 0))
+                unc = ~cert
+                n_unc = jnp.sum(unc).astype(jnp.int32)
+                rows = jnp.nonzero(unc, size=n_src, fill_value=n_src)[0].astype(jnp.int32)
+                return a_idx, a_d2, rows, n_unc
+
+            def no_check(_):
+                return (jnp.full((n_src,), -1, jnp.int32), jnp.full((n_src,), jnp.inf, dtype),
+                        jnp.full((n_src,), n_src, jnp.int32), jnp.int32(0))
+
+            a_idx, a_d2, rows, n_unc = jax.lax.cond(cache_turn, check, no_check, None)
+            rows_c = jnp.minimum(rows, n_src - 1)
+            x_in = jnp.where(cache_turn, pad_rows(p[rows_c]), x_in)
+            n_in = jnp.where(cache_turn, n_unc, n_src)
+            k_in = jnp.where(cache_turn, ck, 1)
+            warm_in = jnp.where(cache_turn, -1, jprev)
+            approx_in = approx_now & ~cache_turn
+        else:
+            cache_turn, warm_in, approx_in = jnp.bool_(False), jprev, ~exact & ~stop
+        if sub > 1:  # an approximate turn: the strided subset of the source (its rows first), searched alone
+            sub_turn = ~first & approx_in
+            x_in = jnp.where(sub_turn, pad_rows(p[perm_sub]), x_in)
+            n_in = jnp.where(sub_turn, n_sub, n_in)
+            warm_in = jnp.where(sub_turn, jnp.concatenate([jprev[perm_sub], jprev[n_src:]]), warm_in)
+
+        def search(_):
+            return nearest(jnp.where(first, self_x, x_in), jnp.where(first, k_self, k_in),
+                           jnp.where(first, self_n, n_in), ~first & approx_in,
+                           jnp.where(first, jnp.inf, gate), (first & src_self).astype(jnp.int32),
+                           jnp.where(first, -1, warm_in) if _WARM_START else None)
+
+        if ck:  # every row certified: no search at all
+            searching = ~cache_turn | (n_unc > 0)
+            idx, d2 = jax.lax.cond(searching, search, lambda _: (jnp.full((n_q, kmax), -1, jnp.int32),
+                                                                 jnp.full((n_q, kmax), jnp.inf, dtype)), None)
+        else:
+            idx, d2 = search(None)
+        j_s, d2_s = idx[:n_src, 0], d2[:n_src, 0]
+        if sub > 1:  # back in source order; the rows outside the subset: no pair (-1, inf)
+            j_s, d2_s = jnp.where(sub_turn, j_s[inv_sub], j_s), jnp.where(sub_turn, d2_s[inv_sub], d2_s)
+        if ck:
+            live = jnp.arange(n_src) < n_unc
+            at = jnp.where(live, rows, n_src)  # the searched rows' places (n_src: dropped)
+            cached = cache[:-1]
+
+            def merge(_):
+                """The searched rows' ck nearest into their cache rows; their nearest (the k = 1 tie rule:
+                the smallest sorted position among equal distances) into the answers."""
+                qi, qd = idx[:n_src, :ck], d2[:n_src, :ck]
+                qpos = jnp.where(qi >= 0, inv_order[jnp.maximum(qi, 0)], -1)
+                big = jnp.iinfo(jnp.int32).max
+                bp = jnp.min(jnp.where((qpos >= 0) & (qd == qd[:, :1]), qpos, big), axis=1)
+                j0 = jnp.where(bp == big, -1, g_t.order[jnp.clip(bp, 0, g_t.order.shape[0] - 1)])
+                rad = jnp.where(jnp.isfinite(qd[:, -1]), jnp.sqrt(qd[:, -1]), gate)
+                c2 = (cached[0].at[at].set(qpos, mode="drop"), cached[1].at[at].set(x_in[:n_src], mode="drop"),
+                      cached[2].at[at].set(rad, mode="drop"))
+                return (a_idx.at[at].set(j0, mode="drop"), a_d2.at[at].set(qd[:, 0], mode="drop")) + c2
+
+            def searched(_):
+                return (j_s, d2_s) + tuple(cached)
+
+            def certified(_):
+                return (a_idx, a_d2) + tuple(cached)
+
+            outs = jax.lax.switch(jnp.where(cache_turn, jnp.where(n_unc > 0, 1, 2), 0),
+                                  [searched, merge, certified], None)
+            j_c, d2_c = outs[:2]
+            cache = tuple(outs[2:]) + (c_on,)
+        else:
+            j_c, d2_c = j_s, d2_s
 
         def first_turn(_):
             if two:
@@ -527,8 +698,13 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             return st[:13] + (jnp.bool_(False), aux2, inl2) + st[16:]
 
         def turn(_):
-            j, d2c, ok = correspond(idx, d2)
+            j, d2c, ok = correspond(j_c, d2_c)
             r2, t2, small, bad2, n2, dang = step(r, t, p, j, ok, aux, cs)
+            if sub > 1:  # the subset gave too few pairs (or no step): no step; the next turn, every point
+                few = sub_turn & (bad2 != OK)
+                r2, t2, bad2, small = jnp.where(few, r, r2), jnp.where(few, t, t2), jnp.where(few, OK, bad2), small & ~few
+            else:
+                few = jnp.bool_(False)
             # the approximate phase also ends when it stops paying: the mean squared distance no
             # longer falls (approximate pairs can cycle by ~1e-3 deg and never make the step small)
             ms = jnp.sum(jnp.where(ok, d2c, 0.0)) / jnp.maximum(jnp.sum(ok), 1)
@@ -550,6 +726,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                            & (jnp.linalg.norm(t2 - ht, axis=-1) <= trans_tol))
             cycled = (since2 >= _CYCLE_ITERS) & ((wmax2 <= _CYCLE_TOL) | (back & (wmax2 <= _CYCLE_MAX)))
             upd = ~stop & (bad2 == OK)
+            cache2 = cache if not ck or _CACHE_STEP <= 0 else cache[:-1] + (cache[-1] | (dang < _CACHE_STEP),)
             keep = exact & upd  # the history holds exact-phase poses only (NaN: none yet)
             hist2 = (jnp.where(keep, jnp.concatenate([hr[1:], r2[None]]), jnp.where(exact, hr, jnp.nan)),
                      jnp.where(keep, jnp.concatenate([ht[1:], t2[None]]), jnp.where(exact, ht, jnp.nan)))
@@ -560,8 +737,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                     _progress_line, it, n_pairs, rms, rotation_angle_deg(r2 @ r.T), ~(~exact & ~stop)))
             return (jnp.where(stop, it, it + 1), jnp.where(upd, r2, r), jnp.where(upd, t2, t),
                     jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
-                    jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled,
-                    best2, since2, wmax2, first, aux, inl, src_self, cs, hist2, idx[:, 0])
+                    jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled | few,
+                    best2, since2, wmax2, first, aux, inl, src_self, cs, hist2,
+                    jnp.concatenate([j_c, idx[n_src:, 0]]), cache2)
 
         return jax.lax.cond(first, first_turn, turn, None)
 
@@ -571,7 +749,9 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             jnp.bool_(need_self), aux0, inlier0, jnp.bool_(two),
             jnp.zeros((n_src, 3, 3) if two else (1,), dtype),
             (jnp.full((_CYCLE_ITERS, 3, 3), jnp.nan, dtype), jnp.full((_CYCLE_ITERS, 3), jnp.nan, dtype)),
-            jnp.full((n_q,), -1, jnp.int32))
+            jnp.full((n_q,), -1, jnp.int32),
+            (jnp.full((n_src, ck), -1, jnp.int32), jnp.zeros((n_src, 3), dtype), jnp.full((n_src,), -jnp.inf, dtype),
+             jnp.bool_(False)) if ck else ())
     out = jax.lax.while_loop(cond, body, init)
     it, r, t, done, bad, n_ok, d2a, ok = out[:8]
     inlier_dist = out[15]
