@@ -74,8 +74,9 @@ the registration is the same within 4.5e-7 (point-to-plane, GICP) / 6.3e-5 (poin
 float32 fixed point drifts) in R, with 1-2 more iterations (point-to-point: 42 instead of 43; float64
 45 instead of the cap, 50) (``docs/benchmarks_icp.md``). A subset turn with too few pairs for a step
 (a distance gate that few source points meet) makes none and hands over to every point.
-Point-to-point (tens of near turns) can also keep a certified correspondence cache (``_CACHE_K = 4``;
-off by default: at 20,000 points 0.79x the run time, +22 % compile): each source point's
+Point-to-point (tens of near turns) keeps a certified correspondence cache on the grid path
+(``_CACHE_K = 4``; at 20,000 points, float32, one process, load 1.5: the call 193.7 -> 152.0 ms,
+compile 3.5 -> 4.1 s CPU, outputs bit-identical): each source point's
 4 nearest target points at ``p_c``, where it was last searched, and the 4th distance ``d_4``. Every
 other target point is at least ``d_4 - |p - p_c|`` from the point's new position ``p``, so when the
 nearest cached distance is below that (a 64 ulp margin for rounding; with a distance gate, the gate
@@ -362,9 +363,10 @@ _WARM_START = True  # the correspondence search starts from the last turn's pair
 # lie inside its 27-cell block (then the approximate search's answer is the same point); the rows
 # searched get exact answers, which differ from the approximate search's only where the nearest lies
 # outside that block (the bunny at 20,000 points: none, outputs bit-identical)
-# Off by default: at 20,000 bunny points it makes point-to-point 0.79x in run time (CPU, float32, with
-# _SUBSET) but its compile +22 % (4.0 -> 4.9 s CPU; the brief's limit is ~10 %); set 4 to use it
-_CACHE_K = 0
+# On (4) for point-to-point: at 20,000 bunny points, float32, with _SUBSET, one process, load 1.5
+# (python benchmarks/ab_icp_cache.py --variants 0:0:4,4:0:4 --methods point_to_point): 193.7 -> 152.0 ms
+# wall, compile 3.51 -> 4.13 s CPU (+18 %, still under issue 13's 5 s per fit), outputs bit-identical
+_CACHE_K = 4
 _CACHE_STEP = 0.0
 # approximate turns on every _SUBSET-th source point (grid path, from _SUBSET_FROM source points;
 # 1: all points; probe knobs)
