@@ -131,6 +131,19 @@ def _timed(fn):
     return time.perf_counter() - w0, time.process_time() - c0
 
 
+def _interleaved(parts: dict, repeats: int) -> dict:
+    """Each callable once (warm-up: compile), then ``repeats`` rounds in rotated order: (wall, CPU) lists."""
+    for f in parts.values():
+        f()
+    res = {k: [] for k in parts}
+    for r in range(repeats):
+        names = list(parts)
+        names = names[r % len(names):] + names[:r % len(names)]
+        for k in names:
+            res[k].append(_timed(parts[k]))
+    return res
+
+
 def stages_part(repeats: int, old) -> None:
     src, tgt = scene(0)
     s, t = jnp.asarray(src), jnp.asarray(tgt)
@@ -154,14 +167,7 @@ def stages_part(repeats: int, old) -> None:
     }
     if old is not None:
         parts["fsjax old whole call"] = lambda: fs_call(old, 0, s, t)
-    for f in parts.values():  # warm-up: compile
-        f()
-    res = {k: [] for k in parts}
-    for r in range(repeats):
-        names = list(parts)
-        names = names[r % len(names):] + names[:r % len(names)]
-        for k in names:
-            res[k].append(_timed(parts[k]))
+    res = _interleaved(parts, repeats)
     print(f"stages, 2,000-point crops, medians of {repeats} interleaved runs (wall / CPU ms):")
     for k, v in res.items():
         a = np.array(v) * 1e3
@@ -198,14 +204,7 @@ def n20k_part(repeats: int, voxel: float, seeds: int, old=None) -> None:
              "Open3D 20k (downsample + FPFH + RANSAC)": lambda: o3d_call(src, tgt, voxel=voxel)}
     if old is not None:
         parts["fsjax old 20k"] = lambda: fs_run(0, s, t, old)
-    for f in parts.values():
-        f()
-    res = {k: [] for k in parts}
-    for r in range(repeats):
-        names = list(parts)
-        names = names[r % len(names):] + names[:r % len(names)]
-        for k in names:
-            res[k].append(_timed(parts[k]))
+    res = _interleaved(parts, repeats)
     for k, v in res.items():
         a = np.array(v) * 1e3
         print(f"  {k:48s} {np.median(a[:, 0]):8.1f} / {np.median(a[:, 1]):8.1f} ms (wall / CPU)")

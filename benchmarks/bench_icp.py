@@ -170,7 +170,7 @@ def bench_batched(n: int, batch: int, repeats: int, dname: str = "float32") -> l
 
 
 def bench_global(n: int, repeats: int) -> list[dict]:
-    import open3d as o3d
+    from bench_global import o3d_call
 
     keep = 1.0 / 1.3
     xs, xt = _crop_pair(n, keep, 0)
@@ -189,20 +189,8 @@ def bench_global(n: int, repeats: int) -> list[dict]:
     res = fs()
     first = time.perf_counter() - t0
 
-    def o3():
-        reg = o3d.pipelines.registration
-        clouds = []
-        for pts in (src, xt):
-            pc = o3d.geometry.PointCloud()
-            pc.points = o3d.utility.Vector3dVector(pts)
-            pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(10))
-            f = reg.compute_fpfh_feature(pc, o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=48))
-            clouds.append((pc, f))
-        return reg.registration_ransac_based_on_feature_matching(
-            clouds[0][0], clouds[1][0], clouds[0][1], clouds[1][1], True, dist,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
-            reg.RANSACConvergenceCriteria(100000, 0.999))
+    def o3():  # Open3D's FPFH + RANSAC, the same call as benchmarks/bench_global.py's
+        return o3d_call(src, xt, radius=radius, dist=dist)
 
     o = o3()
     tim = time_round_robin({"fsjax FPFH+RANSAC": fs, "Open3D FPFH+RANSAC": o3}, repeats=repeats, warmup=1)
