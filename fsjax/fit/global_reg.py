@@ -801,6 +801,9 @@ def global_registration(
                         n_truncated=jnp.sum(trs) + jnp.sum(trt))
 
 
+_GRID_REFIT = True  # the point refit queries the target grid at every size (a probe knob)
+
+
 @jit_fast_compile(static_argnames=("rounds", "metric"))
 def _point_refit(coarse, xs, xt, nt, vs, vt, distance, rounds, metric="plane"):
     """Refit the coarse pose on nearest-point pairs closer than ``distance``, ``rounds`` times at most.
@@ -822,11 +825,12 @@ def _point_refit(coarse, xs, xt, nt, vs, vt, distance, rounds, metric="plane"):
     sc = jnp.where(sc > 0, sc, 1.0)
     xs, xt, distance = (xs - c) / sc, (xt - c) / sc, distance / sc
     r, t = coarse.R, (coarse.t + coarse.R @ c - c) / sc
-    # above knn's brute-force size the target's grid is built once and queried with the gate as
-    # ``max_dist`` (a query stops at the first cell block past it). Below it, brute force: the gated
-    # grid query ran 1.6 ms a round instead of 11 at 2,000 points, but compiled 1.7 s CPU longer
-    # (FPFH + RANSAC's first call then passed issue 13's 5 s)
-    grid = xs.shape[0] * xt.shape[0] > _BRUTE_LIMIT
+    # the target's grid is built once and queried with the gate as ``max_dist`` (a query stops at the
+    # first cell block past it), also below knn's brute-force size: at 2,000 points 1.6 ms a round
+    # instead of 11 (the whole call 183 -> ~130 ms wall, Open3D 174, idle), for 1.7 s CPU more compile
+    # (FPFH + RANSAC's first call 4.85 -> 6.19 s CPU, over issue 13's 5 s; the persistent compile
+    # cache pays it once). _GRID_REFIT = False: brute force below that size (a probe knob)
+    grid = _GRID_REFIT or xs.shape[0] * xt.shape[0] > _BRUTE_LIMIT
     index = build_index(xt, vt, k=4) if grid else None
     n_ok = jnp.sum(nt * nt, -1) > 0
     tol = max(1e-6, 64 * float(jnp.finfo(dtype).eps))  # float32: the solve's rounding noise
