@@ -1,7 +1,7 @@
 """The certified correspondence cache of ``fsjax.fit.icp``: the whole call with and without it, one process.
 
 Each variant (``--variants``: ``off`` = ``_CACHE_K = 0``, the plain search every turn; ``K:step:sub`` =
-``_CACHE_K = K``, ``_CACHE_STEP = step`` radians, ``_SUBSET = sub``, 1 if not given) of each method is compiled ahead of
+``_CACHE_K = K``, ``step`` = 0 (the approximate-phase cache, ``_CACHE_STEP``, was removed after it measured worse), ``_SUBSET = sub``, 1 if not given) of each method is compiled ahead of
 time in this process (``jax.jit(..., compiler_options=FAST_COMPILE)``: what an eager ``icp`` call
 compiles; ``--default-options``: XLA's default, a user's ``jit``), then all run interleaved
 (round robin), ``--repeats`` times. Prints per variant the compile CPU seconds, the median wall and
@@ -47,10 +47,12 @@ def set_variant(v):
     # after the first reuses the first variant's program
     jax.clear_caches()
     if v == "off":
-        icp_mod._CACHE_K, icp_mod._CACHE_STEP, icp_mod._SUBSET = 0, 0.0, 1
+        icp_mod._CACHE_K, icp_mod._SUBSET = 0, 1
     else:
         k, step, sub = (v.split(":") + ["", ""])[:3]
-        icp_mod._CACHE_K, icp_mod._CACHE_STEP, icp_mod._SUBSET = int(k), float(step or 0.0), int(sub or 1)
+        if float(step or 0.0) != 0.0:
+            raise SystemExit("ab_icp_cache: the cache's approximate-phase step (_CACHE_STEP) was removed; use K:0:sub")
+        icp_mod._CACHE_K, icp_mod._SUBSET = int(k), int(sub or 1)
 
 
 def batched_scene(b, n, dt):

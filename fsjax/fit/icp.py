@@ -83,8 +83,8 @@ nearest cached distance is below that (a 64 ulp margin for rounding; with a dist
 below it suffices) the cached nearest is the exact nearest, ties included (every point at that
 distance is cached; ties go to the smallest sorted position, the search's own rule). Only the rows
 refused are searched (compacted, 4 nearest, exact, refreshing their cache), and a turn whose rows
-are all certified searches nothing; the cache starts in the exact phase (``_CACHE_STEP``: also the
-approximate phase once a step is below it; measured worse with the subset above). Outputs with and
+are all certified searches nothing; the cache serves the exact phase only (serving the approximate
+phase too was measured worse with the subset above). Outputs with and
 without it are bit-identical (its answers are the exact search's). The returned pose, ``rms_len``
 and ``inlier_fraction`` come from exact correspondences; the iteration count includes both phases.
 Small problems (``N M <= 2**22``) use the same module's blocked brute force instead (same answers,
@@ -358,16 +358,13 @@ _WARM_START = True  # the correspondence search starts from the last turn's pair
 # certified correspondence cache (grid path, point-to-point): the _CACHE_K nearest target points of
 # each source point at the position of its last search; a later turn takes its nearest from them
 # when the certificate holds (see _cache_answer) and searches only the other rows (0: off, the plain
-# search every turn; a probe knob). _CACHE_STEP (radians): the cache also serves the approximate
-# phase once a rotation step is below it (0: the exact phase only). There a certified row must also
-# lie inside its 27-cell block (then the approximate search's answer is the same point); the rows
-# searched get exact answers, which differ from the approximate search's only where the nearest lies
-# outside that block (the bunny at 20,000 points: none, outputs bit-identical)
+# search every turn; a probe knob), in the exact phase only (serving the approximate phase from a
+# step of 0.01 rad on made point-to-point take 47 iterations with the subset below and run slower:
+# docs/benchmarks_icp.md, "Tried and dropped")
 # On (4) for point-to-point: at 20,000 bunny points, float32, with _SUBSET, one process, load 1.5
 # (python benchmarks/ab_icp_cache.py --variants 0:0:4,4:0:4 --methods point_to_point): 193.7 -> 152.0 ms
 # wall, compile 3.51 -> 4.13 s CPU (+18 %, still under issue 13's 5 s per fit), outputs bit-identical
 _CACHE_K = 4
-_CACHE_STEP = 0.0
 # approximate turns on every _SUBSET-th source point (grid path, from _SUBSET_FROM source points;
 # 1: all points; probe knobs)
 _SUBSET = 4
@@ -401,15 +398,6 @@ def _cache_answer(spts, order, pos, pc, rad, p, gate):
     miss = (v > gate * gate) | (bp == big)
     idx = jnp.where(miss, -1, order[jnp.clip(bp, 0, order.shape[0] - 1)])
     return idx, jnp.where(miss, jnp.inf, v), cert
-
-
-def _block_bound(g: GridIndex, q):
-    """Distance from each query to the faces of its 27-cell block of the index ``g`` (the search's
-    first-pass bound, :meth:`GridIndex.runs` with ring 1): every point closer lies in the block."""
-    u = (q - g.lo) / g.h
-    c = jnp.clip(jnp.floor(u), -2, (g.dims + 1).astype(u.dtype))
-    face = jnp.minimum(u - (c - 1), (c + 2) - u)
-    return jnp.maximum(jnp.min(face, axis=-1) * g.h, 0.0)
 
 
 # At top level (an eager call of icp) the program compiles with FAST_COMPILE (XLA:CPU's older loop
@@ -600,20 +588,14 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         self_n = jnp.where(src_self, n_src, n_tgt) if two else n_tgt
         x_in, k_in, n_in = pad_rows(p), 1, n_src
         if ck:
-            # a cache turn (exact phase, or approximate once a step fell below _CACHE_STEP): rows whose
-            # cached nearest is certified are answered from the cache, the others (compacted to the
-            # front) are searched for their ck nearest, exactly, which refresh their cache rows
-            c_on = cache[-1]
-            cache_turn = ~first & (c_on | exact)
+            # a cache turn (the exact phase): rows whose cached nearest is certified are answered from
+            # the cache, the others (compacted to the front) are searched for their ck nearest, exactly,
+            # which refresh their cache rows
+            cache_turn = ~first & exact
             approx_now = ~exact & ~stop
 
             def check(_):
-                a_idx, a_d2, cert = _cache_answer(g_t.spts, g_t.order, *cache[:3], p, gate)
-                # approximate phase: the search's answer is the nearest of the query's 27-cell block;
-                # the cached (exact) nearest is that answer when it lies strictly inside the block
-                if _CACHE_STEP > 0:
-                    inside = jnp.sqrt(a_d2) < _block_bound(g_t, p) * (1 - 64 * jnp.finfo(dtype).eps)
-                    cert = cert & (~approx_now | inside | (a_idx < 0))
+                a_idx, a_d2, cert = _cache_answer(g_t.spts, g_t.order, *cache, p, gate)
                 unc = ~cert
                 n_unc = jnp.sum(unc).astype(jnp.int32)
                 rows = jnp.nonzero(unc, size=n_src, fill_value=n_src)[0].astype(jnp.int32)
@@ -656,7 +638,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
         if ck:
             live = jnp.arange(n_src) < n_unc
             at = jnp.where(live, rows, n_src)  # the searched rows' places (n_src: dropped)
-            cached = cache[:-1]
+            cached = cache
 
             def merge(_):
                 """The searched rows' ck nearest into their cache rows; their nearest (the k = 1 tie rule:
@@ -680,7 +662,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             outs = jax.lax.switch(jnp.where(cache_turn, jnp.where(n_unc > 0, 1, 2), 0),
                                   [searched, merge, certified], None)
             j_c, d2_c = outs[:2]
-            cache = tuple(outs[2:]) + (c_on,)
+            cache = tuple(outs[2:])
         else:
             j_c, d2_c = j_s, d2_s
 
@@ -728,7 +710,6 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                            & (jnp.linalg.norm(t2 - ht, axis=-1) <= trans_tol))
             cycled = (since2 >= _CYCLE_ITERS) & ((wmax2 <= _CYCLE_TOL) | (back & (wmax2 <= _CYCLE_MAX)))
             upd = ~stop & (bad2 == OK)
-            cache2 = cache if not ck or _CACHE_STEP <= 0 else cache[:-1] + (cache[-1] | (dang < _CACHE_STEP),)
             keep = exact & upd  # the history holds exact-phase poses only (NaN: none yet)
             hist2 = (jnp.where(keep, jnp.concatenate([hr[1:], r2[None]]), jnp.where(exact, hr, jnp.nan)),
                      jnp.where(keep, jnp.concatenate([ht[1:], t2[None]]), jnp.where(exact, ht, jnp.nan)))
@@ -741,7 +722,7 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
                     jnp.where(stop, done, (small | cycled) & exact), jnp.where(stop, bad, bad2.astype(jnp.int32)),
                     jnp.where(stop, n_ok, n2.astype(jnp.int32)), d2c, ok, stop, exact | small | stalled | few,
                     best2, since2, wmax2, first, aux, inl, src_self, cs, hist2,
-                    jnp.concatenate([j_c, idx[n_src:, 0]]), cache2)
+                    jnp.concatenate([j_c, idx[n_src:, 0]]), cache)
 
         return jax.lax.cond(first, first_turn, turn, None)
 
@@ -752,8 +733,8 @@ def _icp_core(src, sv, tgt, tv, tnormals, r0, t0, max_corr, overlap, inlier_dist
             jnp.zeros((n_src, 3, 3) if two else (1,), dtype),
             (jnp.full((_CYCLE_ITERS, 3, 3), jnp.nan, dtype), jnp.full((_CYCLE_ITERS, 3), jnp.nan, dtype)),
             jnp.full((n_q,), -1, jnp.int32),
-            (jnp.full((n_src, ck), -1, jnp.int32), jnp.zeros((n_src, 3), dtype), jnp.full((n_src,), -jnp.inf, dtype),
-             jnp.bool_(False)) if ck else ())
+            (jnp.full((n_src, ck), -1, jnp.int32), jnp.zeros((n_src, 3), dtype), jnp.full((n_src,), -jnp.inf, dtype))
+            if ck else ())
     out = jax.lax.while_loop(cond, body, init)
     it, r, t, done, bad, n_ok, d2a, ok = out[:8]
     inlier_dist = out[15]
