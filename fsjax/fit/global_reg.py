@@ -51,7 +51,7 @@ from .._checks import check_choice, check_positive, check_range, check_static_in
 from .._linalg import eigh_small, jit_fast_compile
 from ..ops import knn
 from ..ops.points._cloud import normals_from_neighbours
-from ..ops.points._search import _BRUTE_LIMIT, build_index, query_knn
+from ..ops.points._search import build_index, query_knn
 from ..types import Points
 from ..types.results import FitResult, WrappedFit
 from ._cloud import as_cloud
@@ -801,9 +801,6 @@ def global_registration(
                         n_truncated=jnp.sum(trs) + jnp.sum(trt))
 
 
-_GRID_REFIT = True  # the point refit queries the target grid at every size (a probe knob)
-
-
 @jit_fast_compile(static_argnames=("rounds", "metric"))
 def _point_refit(coarse, xs, xt, nt, vs, vt, distance, rounds, metric="plane"):
     """Refit the coarse pose on nearest-point pairs closer than ``distance``, ``rounds`` times at most.
@@ -829,15 +826,14 @@ def _point_refit(coarse, xs, xt, nt, vs, vt, distance, rounds, metric="plane"):
     # first cell block past it), also below knn's brute-force size: at 2,000 points 1.6 ms a round
     # instead of 11 (the whole call 183 -> ~130 ms wall, Open3D 174, idle), for 1.7 s CPU more compile
     # (FPFH + RANSAC's first call 4.85 -> 6.19 s CPU, over issue 13's 5 s; the persistent compile
-    # cache pays it once). _GRID_REFIT = False: brute force below that size (a probe knob)
-    grid = _GRID_REFIT or xs.shape[0] * xt.shape[0] > _BRUTE_LIMIT
-    index = build_index(xt, vt, k=4) if grid else None
+    # cache pays it once; brute force below that size is in git history, commit 1a4ef6b)
+    index = build_index(xt, vt, k=4)
     n_ok = jnp.sum(nt * nt, -1) > 0
     tol = max(1e-6, 64 * float(jnp.finfo(dtype).eps))  # float32: the solve's rounding noise
 
     def pairs(r, t):
         p = xs @ r.T + t
-        j, d2 = query_knn(index, p, 1, max_dist=distance) if grid else knn(xt, p, 1, ref_valid=vt)
+        j, d2 = query_knn(index, p, 1, max_dist=distance)
         w = vs & (j[:, 0] >= 0) & (d2[:, 0] <= distance**2)
         return p, jnp.maximum(j[:, 0], 0), w
 
