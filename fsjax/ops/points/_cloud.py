@@ -39,8 +39,17 @@ from jax import lax
 from ..._checks import check_positive, check_range, check_static_int
 from ...registry import LinKnob, LogKnob, register
 from ...types import Points
-from ._search import _BRUTE_LIMIT, _grid, _knn_cell_size, _self_knn_sorted, _unsort
+from ._search import (
+    _BRUTE_LIMIT,
+    _grid,
+    _knn_cell_size,
+    _query_grid_knn,
+    _redo,
+    _self_knn_sorted,
+    _unsort,
+)
 from ._search import knn as _search_knn
+from ._selfpca import self_cov_sorted
 
 __all__ = [
     "estimate_normals",
@@ -76,6 +85,12 @@ def _safe_unit(v, axis=-1):
 
 
 def smallest_eigvec3(cov):
+    """Unit eigenvector of the smallest eigenvalue of symmetric 3 x 3 matrices ``(N, 3, 3)``; see
+    :func:`eig3_smallest` (which also gives the eigenvalues)."""
+    return eig3_smallest(cov)[1]
+
+
+def eig3_smallest(cov):
     """Unit eigenvector of the smallest eigenvalue of symmetric 3 x 3 matrices ``(N, 3, 3)``, closed form.
 
     Eigenvalues by the trigonometric formula (O. K. Smith, "Eigenvalues of a symmetric 3 x 3
@@ -85,6 +100,12 @@ def smallest_eigvec3(cov):
     lambda_min)`` (the conditioning of the eigenvector itself). About 10x faster than
     ``jnp.linalg.eigh`` on CPU (20,000 matrices: 5 ms vs 54 ms, float32). A zero matrix or a
     non-finite one gives NaN; a double smallest eigenvalue gives one vector of its plane.
+
+    Returns ``(evals (N, 3) ascending, v (N, 3))``, the eigenvalues by the same formula
+    (``lambda_mid = trace - lambda_min - lambda_max``): near a double eigenvalue the ``arccos``
+    loses half the digits (on a line, ``diag(1.25, 0, 0)`` in float64, the two zero eigenvalues
+    come out as -/+ 7e-9); callers that test ``lambda_mid`` use the minors instead (see
+    :func:`_normals_of_cov`).
     """
     dtype = cov.dtype
     s = jnp.max(jnp.abs(cov), axis=(-2, -1))
@@ -100,6 +121,8 @@ def smallest_eigvec3(cov):
            + c[..., 0, 2] * (c[..., 1, 0] * c[..., 2, 1] - c[..., 1, 1] * c[..., 2, 0]))
     phi = jnp.arccos(jnp.clip(det / 2, -1.0, 1.0)) / 3
     lam = q + 2 * p * jnp.cos(phi + 2 * np.pi / 3)
+    lam_max = q + 2 * p * jnp.cos(phi)
+    evals = jnp.stack([lam, 3 * q - lam - lam_max, lam_max], -1) * jnp.where(ok, s, jnp.nan)[..., None]
     m = a - lam[..., None, None] * eye
     r0, r1, r2 = m[..., 0, :], m[..., 1, :], m[..., 2, :]
     cands = jnp.stack([jnp.cross(r0, r1), jnp.cross(r0, r2), jnp.cross(r1, r2)], -2)
@@ -109,7 +132,7 @@ def smallest_eigvec3(cov):
     vn = jnp.sqrt(jnp.max(n2, -1))
     # p == 0: a multiple of the identity (every vector is an eigenvector): take x
     v = jnp.where((p > 0)[..., None], v / jnp.where(vn > 0, vn, 1.0)[..., None], eye[0])
-    return jnp.where((ok & ((vn > 0) | (p == 0)))[..., None], v, jnp.nan)
+    return evals, jnp.where((ok & ((vn > 0) | (p == 0)))[..., None], v, jnp.nan)
 
 
 def pca_frames(xyz, valid, idx):
@@ -197,11 +220,26 @@ def _estimate_normals_core(pts: Points, k: int, vp):
     # the grid's self-query and the PCA in the grid's sorted order (coherent gathers), then unsorted:
     # the same neighbours and the same arithmetic per row as knn + normals_from_neighbours
     g = _grid(xyz, valid, _knn_cell_size(xyz, valid, k))
-    pos, _ = _self_knn_sorted(g, k)
-    return _unsort(g.order, normals_from_neighbours(g.spts, valid[g.order], pos, vp))
+    vs = valid[g.order]
+    if not _THRESHOLD_NORMALS:
+        pos, _ = _self_knn_sorted(g, k)
+        return _unsort(g.order, normals_from_neighbours(g.spts, vs, pos, vp))
+    # the k nearest of most rows by a threshold, their covariance by masked sums (no lists, no top_k);
+    # the rows it does not answer (a tie at the threshold, an overflowing or uncertified block) from
+    # exact neighbour lists, as knn gives them
+    cov, ok = self_cov_sorted(g, k)
+
+    def listed(sel):
+        idx, _ = _query_grid_knn(g, g.spts[sel], k)
+        return _cov_rows(xyz, valid, idx)
+
+    cov, cnt = _redo(vs & ~ok, 128, listed, (cov, jnp.full(n, k, jnp.int32)))
+    return _unsort(g.order, _normals_of_cov(cov, cnt, g.spts, vs, vp))
 
 
 _SORTED_NORMALS = True  # estimate_normals in the grid's sorted order (a probe knob)
+_THRESHOLD_NORMALS = True  # the sorted path's k nearest by self_cov_sorted's threshold (a probe knob)
+_CLOSED_FORM_EIG = True  # normals by eig3_smallest, not jnp.linalg.eigh (a probe knob)
 
 
 NORMALS_BLOCK = 4096  # query rows per step of normals_from_neighbours' lax.map
@@ -232,13 +270,41 @@ def normals_from_neighbours(xyz, valid, idx, viewpoint=None, *, block: int | Non
 
 def _normals_rows(xyz, valid, idx, q_xyz, q_valid, vp):
     """Normals of the query rows ``q_xyz`` (their neighbour lists ``idx`` into ``xyz``)."""
-    evals, evecs, _, cnt = pca_frames(xyz, valid, idx)
-    n = evecs[..., 0]
+    cov, cnt = _cov_rows(xyz, valid, idx)
+    return _normals_of_cov(cov, cnt, q_xyz, q_valid, vp)
+
+
+def _cov_rows(xyz, valid, idx):
+    """Covariance ``(B, 3, 3)`` and count ``(B,)`` of the valid points listed in each row of ``idx``."""
+    m = (idx >= 0) & valid[jnp.maximum(idx, 0)]
+    nb = xyz[jnp.maximum(idx, 0)]
+    cnt = jnp.sum(m, axis=1)
+    cs = jnp.maximum(cnt, 1).astype(xyz.dtype)[:, None]
+    mu = jnp.sum(jnp.where(m[..., None], nb, 0.0), axis=1) / cs
+    d = jnp.where(m[..., None], nb - mu[:, None, :], 0.0)
+    cov = jnp.einsum("nki,nkj->nij", d, d) / cs[..., None]
+    return cov, cnt.astype(jnp.int32)
+
+
+def _normals_of_cov(cov, cnt, q_xyz, q_valid, vp):
+    """The normals of the query rows from their neighbourhoods' covariances ``cov`` and counts ``cnt``."""
+    if _CLOSED_FORM_EIG:
+        evals, n = eig3_smallest(cov)
+        # the line test's middle eigenvalue from the sum of the principal 2 x 2 minors c2 (c2 / lambda_max
+        # lies in [lambda_mid, 3 lambda_mid]): the closed form's own lambda_mid is ~sqrt(eps) off on a line
+        c = cov
+        c2 = ((c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]) + (c[:, 0, 0] * c[:, 2, 2] - c[:, 0, 2] * c[:, 2, 0])
+              + (c[:, 1, 1] * c[:, 2, 2] - c[:, 1, 2] * c[:, 2, 1]))
+        lmax = evals[:, 2]
+        evals = evals.at[:, 1].set(c2 / jnp.where(lmax > 0, lmax, 1.0))
+    else:
+        evals, evecs = jnp.linalg.eigh(cov)
+        n = evecs[..., 0]
     scale = jnp.maximum(evals[:, 2], 0.0)
     # a neighbourhood on a line has no normal; its middle eigenvalue is 0 up to the solver's
     # error (~eps scale) and the coordinates' rounding (~(eps |x|)^2): the old floor 1e-12 scale
     # sat below float32's, and 54 of 64 float32 points on a line got a normal (issue 20 sweep)
-    eps = jnp.finfo(xyz.dtype).eps
+    eps = jnp.finfo(q_xyz.dtype).eps
     floor = jnp.maximum(max(1e-12, 32 * float(eps)) * scale,
                         (32 * eps * jnp.max(jnp.abs(q_xyz), axis=-1)) ** 2)
     ok = q_valid & (cnt >= 3) & (evals[:, 1] > floor) & (scale > 0)
