@@ -645,6 +645,26 @@ def _scan_cells(spts, q, start, length, kk, S, r2=None, exact=False, select=None
     return bd, bi, cnt, ok
 
 
+def _block_slots(g: GridIndex, q, C: int):
+    """The candidates of each query's 27-cell block laid out in ``C`` slots (no loop, no gather of the
+    runs: slot ``s`` lies in the last run whose first slot is ``<= s``, a chain of selects).
+
+    Returns the sorted positions ``pos`` ``(B, C)`` (0 in empty slots), ``live`` ``(B, C)``, the block's
+    point count ``total`` ``(B,)`` (more than ``C``: the slots hold only a part of it) and ``bound``
+    ``(B,)``, the distance from the query to the block's faces (:meth:`GridIndex.runs`).
+    """
+    start, length, bound = g.runs(q, 1)
+    cum = jnp.cumsum(length, axis=1)
+    first = cum - length
+    s = jnp.arange(C, dtype=jnp.int32)[None, :]
+    off = start - first
+    o = jnp.broadcast_to(off[:, :1], (q.shape[0], C))
+    for j in range(1, cum.shape[1]):
+        o = jnp.where(s >= first[:, j:j + 1], off[:, j:j + 1], o)
+    live = s < cum[:, -1:]
+    return jnp.where(live, o + s, 0), live, cum[:, -1], bound
+
+
 def _slots(k: int) -> int:
     """Candidates per query and step: about the 90th percentile of the 27-cell count."""
     return int(8 * math.ceil((5.5 * k + 8) / 8))
@@ -834,24 +854,14 @@ def _query_grid_knn(g: GridIndex, qry, k, approx=None, gate2=None, k_used=None, 
         xyz = (g.spts[:, 0], g.spts[:, 1], g.spts[:, 2])  # coordinates apart: three flat gathers
 
         def fixed_pass(q, C):
-            start, length, bound = g.runs(q, 1)
-            cum = jnp.cumsum(length, axis=1)
-            first = cum - length
-            s = jnp.arange(C, dtype=jnp.int32)[None, :]
-            # slot s lies in the last run whose first slot is <= s (a chain of selects, no gather)
-            off = start - first
-            o = jnp.broadcast_to(off[:, :1], (q.shape[0], C))
-            for j in range(1, cum.shape[1]):
-                o = jnp.where(s >= first[:, j:j + 1], off[:, j:j + 1], o)
-            ok = s < cum[:, -1:]
-            pos = jnp.where(ok, o + s, 0)
+            pos, ok, total, bound = _block_slots(g, q, C)
             if _FLAT_GATHER:
                 dx, dy, dz = (c[pos] - q[:, i:i + 1] for i, c in enumerate(xyz))
                 d2 = jnp.where(ok, (dx * dx + dy * dy) + dz * dz, jnp.inf)
             else:
                 d2 = jnp.where(ok, _sqdist(q[:, None, :], g.spts[pos]), jnp.inf)
             d2, pos, sel_ok = select(d2, pos)
-            full = cum[:, -1:] <= C  # else the C candidates are a part of the block: discarded, not answered
+            full = total[:, None] <= C  # else the C candidates are a part of the block: discarded, not answered
             d2 = jnp.where(full, d2, jnp.inf)
             b = jnp.maximum(bound, 0.0)
             cert = (kth(d2) < (b * b) * (1 - 64 * eps)) | (gated(b) & full[:, 0])

@@ -28,7 +28,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax import lax
 
-from ._search import GridIndex, _batched, _fixed_slots
+from ._search import GridIndex, _batched, _block_slots, _fixed_slots
 
 _Q = 32767  # key levels (int16)
 _STEPS = 15  # bisection steps: 2^15 > _Q
@@ -52,16 +52,7 @@ def self_cov_sorted(g: GridIndex, k: int):
 
     def candidates(q):
         """Offsets ``p - q`` of the block's candidates, their keys, and whether the block fit."""
-        start, length, bound = g.runs(q, 1)
-        cum = jnp.cumsum(length, axis=1)
-        first = cum - length
-        s = jnp.arange(C, dtype=jnp.int32)[None, :]
-        off = start - first
-        o = jnp.broadcast_to(off[:, :1], (q.shape[0], C))
-        for j in range(1, cum.shape[1]):  # slot s lies in the last run whose first slot is <= s
-            o = jnp.where(s >= first[:, j:j + 1], off[:, j:j + 1], o)
-        live = s < cum[:, -1:]
-        pos = jnp.where(live, o + s, 0)
+        pos, live, total, bound = _block_slots(g, q, C)
         dx, dy, dz = (c[pos] - q[:, i:i + 1] for i, c in enumerate(xyz))
         d2 = (dx * dx + dy * dy) + dz * dz  # the search's own arithmetic and order
         b = jnp.maximum(bound, 0.0)
@@ -69,7 +60,7 @@ def self_cov_sorted(g: GridIndex, k: int):
         scale = jnp.where(lim > 0, _Q / jnp.where(lim > 0, lim, 1.0), 0.0)
         x = d2 * scale[:, None]
         key = jnp.where(live & (x < _Q), jnp.floor(x), _Q).astype(jnp.int16)
-        return (dx, dy, dz), key, cum[:, -1] <= C
+        return (dx, dy, dz), key, total <= C
 
     def threshold(q):
         _, key, fits = candidates(q)
