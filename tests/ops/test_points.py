@@ -110,8 +110,10 @@ def test_normals_on_the_grid_by_threshold_equal_the_neighbour_lists(dtype):
     assert np.array_equal(np.isnan(got), np.isnan(ref))
     assert np.isnan(got[~valid]).all() and np.isfinite(got[valid]).all()
     ok = ~np.isnan(got[:, 0])
-    dev = float(np.max(1 - np.abs(np.sum(got[ok] * ref[ok], 1))))
+    # signed: both paths orient toward the viewpoint, so a flipped normal counts as a deviation of 2
+    dev = float(np.max(1 - np.sum(got[ok] * ref[ok], 1)))
     assert dev < (1e-5 if dtype == np.float32 else 1e-12)
+    assert np.all(np.sum(got[ok] * (0.0 - xyz[ok]), 1) >= 0)  # the sign rule: dot(n, viewpoint - p) >= 0
     # the threshold left the tied rows (and only a few others) to the lists
     x = jnp.asarray(np.where(valid[:, None], xyz, 0))
     g = S._grid(x, jnp.asarray(valid), S._knn_cell_size(x, jnp.asarray(valid), k))
